@@ -1,0 +1,1 @@
+"""oposm: temporally abstract world models and skill planning from offline demonstrations."""
