@@ -1,1 +1,143 @@
+"""oposm command line: one command per pipeline stage, plus inspection helpers.
 
+Each stage command loads `params.yaml`, applies `--set section.key=value` overrides for this run
+only, and calls the matching `stages.<name>.run`. `dvc repro` runs the same commands (see
+`dvc.yaml`). A mistake in the input is reported on one line with a non-zero exit status.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+from pipeline.config import Params
+from pipeline.errors import UserError
+
+app = typer.Typer(
+    name="oposm",
+    help=(
+        "Learn skills and a temporally abstract world model from offline demonstrations, then "
+        "plan with them in MuJoCo (OPOSM).\n\n"
+        "Pipeline: ingest -> segment -> train -> validate -> deploy. Run it all with `dvc repro`, "
+        "or one stage at a time with the commands below. Settings live in params.yaml; override "
+        "one for a single run with --set, e.g. `oposm segment --set segment.window=20`."
+    ),
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    add_completion=False,
+)
+
+ParamsOption = Annotated[
+    Path, typer.Option("--params", "-p", help="Params file (one section per stage).")
+]
+SetOption = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--set",
+        "-S",
+        help="Override a param for this run: section.key=value (repeatable), "
+        "e.g. -S ingest.episodes=10.",
+    ),
+]
+DataOption = Annotated[
+    Path, typer.Option("--data", help="Data root: demos/, segments/, reports/ live under it.")
+]
+
+
+def _user_errors(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """Turn a `UserError` into one line on stderr and exit status 1 (no traceback)."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return fn(*args, **kwargs)
+        except UserError as exc:
+            typer.secho(f"error: {exc}", fg=typer.colors.RED, err=True)
+            raise typer.Exit(1) from None
+        except KeyboardInterrupt:
+            typer.secho("interrupted; no partial output was kept", err=True)
+            raise typer.Exit(130) from None
+
+    return wrapper
+
+
+def _setup_logging() -> None:
+    logging.basicConfig(
+        level=logging.INFO, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr
+    )
+
+
+def _load(params: Path, overrides: list[str] | None) -> Params:
+    from pipeline.config import load_params
+
+    _setup_logging()
+    return load_params(params, overrides or [])
+
+
+@app.command()
+@_user_errors
+def ingest(
+    params: ParamsOption = Path("params.yaml"),
+    set_: SetOption = None,
+    data: DataOption = Path("data"),
+) -> None:
+    """Record demonstrations into data/demos/<ingest.name>.mcap.
+
+    With `ingest.source: maze` a scripted expert (D4RL's maze2d waypoint controller) drives a
+    gymnasium-robotics PointMaze for `ingest.episodes` x `ingest.episode_steps` steps.
+    """
+    from pipeline.paths import Paths
+    from stages import ingest as stage
+
+    stage.run(_load(params, set_), Paths(data))
+
+
+@app.command()
+@_user_errors
+def segment(
+    params: ParamsOption = Path("params.yaml"),
+    set_: SetOption = None,
+    data: DataOption = Path("data"),
+) -> None:
+    """Cut the MCAP dataset into windows of `segment.window` states, split by episode.
+
+    Writes data/segments/<ingest.name>/ (episodes stored once + window index + train-only
+    normalization statistics) and data/reports/segment.json.
+    """
+    from pipeline.paths import Paths
+    from stages import segment as stage
+
+    stage.run(_load(params, set_), Paths(data))
+
+
+@app.command()
+@_user_errors
+def inspect(
+    file: Annotated[Path, typer.Argument(help="An oposm MCAP dataset (data/demos/*.mcap).")],
+) -> None:
+    """Print a readable summary of an MCAP dataset: episodes, steps, dims, metadata."""
+    from pipeline.recording import format_summary, summarize
+
+    typer.echo(format_summary(summarize(file)))
+
+
+@app.command("params")
+@_user_errors
+def show_params(
+    params: ParamsOption = Path("params.yaml"),
+    set_: SetOption = None,
+) -> None:
+    """Validate params.yaml (with overrides) and print every resolved value."""
+    import yaml
+
+    typer.echo(yaml.safe_dump(_load(params, set_).model_dump(), sort_keys=False).rstrip())
+
+
+if __name__ == "__main__":
+    app()

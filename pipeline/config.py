@@ -1,0 +1,160 @@
+"""Typed params: one pydantic model per stage, matching the sections of `params.yaml` one to one.
+
+Every model forbids unknown keys, so a typo in `params.yaml` (or in a `--set` override) is an error
+that names the key instead of a silently ignored setting.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from pipeline.envs.expert import ExpertConfig
+from pipeline.envs.maze import SUPPORTED_ENVS
+from pipeline.errors import UserError
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class IngestParams(_Section):
+    """`oposm ingest`: demonstrations into `data/demos/<name>.mcap`."""
+
+    name: str = Field(
+        "pointmaze-medium",
+        pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]*$",
+        description="Dataset name: the MCAP file stem and the segments directory name.",
+    )
+    source: Literal["maze"] = Field("maze", description="Where demonstrations come from.")
+    env_id: Literal[tuple(SUPPORTED_ENVS)] = Field(  # type: ignore[valid-type]
+        "PointMaze_Medium-v3", description="Gymnasium-robotics maze the expert drives in."
+    )
+    episodes: int = Field(100, ge=1, description="Number of episodes to record.")
+    episode_steps: int = Field(1000, ge=2, description="Steps per episode.")
+    seed: int = Field(0, description="Seed of the expert, the noise and the start state.")
+    expert: ExpertConfig = Field(
+        default_factory=ExpertConfig, description="The scripted waypoint expert (D4RL maze2d)."
+    )
+
+
+class SplitParams(_Section):
+    """Fractions of episodes per split; they must sum to 1."""
+
+    train: float = Field(0.8, ge=0, le=1)
+    validation: float = Field(0.1, ge=0, le=1)
+    test: float = Field(0.1, ge=0, le=1)
+
+    @model_validator(mode="after")
+    def _sums_to_one(self) -> SplitParams:
+        total = self.train + self.validation + self.test
+        if abs(total - 1.0) > 1e-6:
+            raise ValueError(f"split fractions must sum to 1, got {total:g}")
+        if self.train <= 0:
+            raise ValueError("the train split must get some episodes (train > 0)")
+        return self
+
+
+class SegmentParams(_Section):
+    """`oposm segment`: sub-trajectory windows, splits and normalization statistics."""
+
+    window: int = Field(
+        40, ge=2, description="States per window, T + 1 (the paper uses 40 for mazes)."
+    )
+    stride: int = Field(1, ge=1, description="Steps between consecutive window starts.")
+    split: SplitParams = Field(default_factory=SplitParams)
+    seed: int = Field(0, description="Seed of the episode shuffle that assigns splits.")
+
+
+class Params(_Section):
+    """All of `params.yaml`."""
+
+    ingest: IngestParams = Field(default_factory=IngestParams)
+    segment: SegmentParams = Field(default_factory=SegmentParams)
+
+
+def _format_validation_error(err: ValidationError, source: str) -> str:
+    first = err.errors()[0]
+    key = ".".join(str(p) for p in first["loc"]) or "<root>"
+    if first["type"] in ("extra_forbidden", "unexpected_keyword_argument"):
+        valid = ", ".join(_section_keys(first["loc"][:-1]))
+        return f"{source}: unknown key '{key}'; valid keys here: {valid}"
+    expected = first["msg"]
+    got = first.get("input")
+    more = f" (and {len(err.errors()) - 1} more problems)" if len(err.errors()) > 1 else ""
+    return f"{source}: bad value for '{key}': {expected}, got {got!r}{more}"
+
+
+def _section_keys(loc: tuple) -> list[str]:
+    """Field names of the (nested) section at `loc`, for error messages."""
+    model: type = Params
+    for part in loc:
+        field = model.model_fields.get(str(part)) if issubclass(model, BaseModel) else None
+        if field is None or not isinstance(field.annotation, type):
+            break
+        model = field.annotation
+    if dataclasses.is_dataclass(model):
+        return [f.name for f in dataclasses.fields(model)]
+    return list(model.model_fields) if issubclass(model, BaseModel) else []
+
+
+def parse_override(text: str) -> tuple[list[str], Any]:
+    """Parse one `section.key=value` override; the value is read as YAML (`3`, `0.5`, `[1, 2]`)."""
+    if "=" not in text:
+        raise UserError(f"override '{text}' is not of the form section.key=value")
+    key, value = text.split("=", 1)
+    path = [p for p in key.strip().split(".") if p]
+    if not path:
+        raise UserError(f"override '{text}' has an empty key")
+    try:
+        parsed = yaml.safe_load(value) if value.strip() else ""
+    except yaml.YAMLError as exc:
+        raise UserError(f"override '{text}': value is not valid YAML ({exc})") from exc
+    return path, parsed
+
+
+def apply_overrides(raw: dict[str, Any], overrides: list[str]) -> dict[str, Any]:
+    """Return a copy of `raw` with each `section.key=value` override set."""
+    result: dict[str, Any] = _deep_copy(raw)
+    for text in overrides:
+        path, value = parse_override(text)
+        node = result
+        for part in path[:-1]:
+            child = node.get(part)
+            if child is None:
+                child = node[part] = {}
+            if not isinstance(child, dict):
+                raise UserError(f"override '{text}': '{part}' is not a section")
+            node = child
+        node[path[-1]] = value
+    return result
+
+
+def _deep_copy(raw: dict[str, Any]) -> dict[str, Any]:
+    return {k: _deep_copy(v) if isinstance(v, dict) else v for k, v in raw.items()}
+
+
+def load_params(path: str | Path = "params.yaml", overrides: list[str] | None = None) -> Params:
+    """Load and validate `params.yaml`, applying `section.key=value` overrides for this run.
+
+    Raises:
+        UserError: the file is missing or not YAML, a key is unknown or a value has the wrong type.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise UserError(f"params file {path} not found; run from the project root or pass --params")
+    try:
+        raw = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise UserError(f"{path} is not valid YAML: {str(exc).splitlines()[0]}") from exc
+    if not isinstance(raw, dict):
+        raise UserError(f"{path} must be a mapping of sections (ingest:, segment:, ...)")
+    raw = apply_overrides(raw, overrides or [])
+    try:
+        return Params.model_validate(raw)
+    except ValidationError as exc:
+        raise UserError(_format_validation_error(exc, str(path))) from exc

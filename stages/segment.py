@@ -1,0 +1,46 @@
+"""Segment stage: an MCAP dataset into sub-trajectory windows split by episode."""
+
+from __future__ import annotations
+
+import logging
+import time
+
+from pipeline.config import Params
+from pipeline.io import write_json
+from pipeline.paths import Paths
+from pipeline.recording import iter_episodes, read_info
+from pipeline.segments import Segments, build_segments, save_segments
+
+log = logging.getLogger(__name__)
+
+
+def run(params: Params, paths: Paths) -> Segments:
+    """Read `data/demos/<name>.mcap`, write `data/segments/<name>/` and `reports/segment.json`."""
+    cfg = params.segment
+    source = paths.demos(params.ingest.name)
+    start = time.perf_counter()
+    info = read_info(source)
+    segments = build_segments(
+        iter_episodes(source),
+        info,
+        window=cfg.window,
+        stride=cfg.stride,
+        split_fractions=cfg.split.model_dump(),
+        seed=cfg.seed,
+    )
+    save_segments(segments, paths.segments(params.ingest.name))
+    elapsed = time.perf_counter() - start
+    summary = segments.summary()
+    write_json(
+        paths.report("segment"),
+        {**{f"{s}_{k}": v for s, d in summary.items() for k, v in d.items()}, "seconds": elapsed},
+    )
+    for split, counts in summary.items():
+        log.info(
+            "%-10s %4d episodes %8d steps %8d windows",
+            split,
+            counts["episodes"],
+            counts["steps"],
+            counts["windows"],
+        )
+    return segments

@@ -1,0 +1,45 @@
+"""Small real datasets built in memory, shared by the tests (`from factories import ...`)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.dataset import DatasetInfo, Episode
+
+
+def make_info(name: str = "synthetic", physics_dim: int = 5) -> DatasetInfo:
+    return DatasetInfo(
+        name=name,
+        source="maze",
+        env_id="PointMaze_Medium-v3",
+        state_names=["x", "y", "vx", "vy"],
+        action_names=["fx", "fy"],
+        state_units=["m", "m", "m/s", "m/s"],
+        action_units=["1", "1"],
+        control_period=0.01,
+        physics_dim=physics_dim,
+        goal_dim=2,
+        seed=0,
+    )
+
+
+def make_episodes(lengths: list[int], seed: int = 0, physics_dim: int = 5) -> list[Episode]:
+    """Episodes whose states encode (episode, step) so tests can tell where a window came from:
+    state[:, 0] = episode index, state[:, 1] = step within the episode."""
+    rng = np.random.default_rng(seed)
+    episodes, t0 = [], 0.0
+    for i, n in enumerate(lengths):
+        obs = np.stack([np.full(n, i), np.arange(n), rng.normal(size=n), rng.normal(size=n)], 1)
+        episodes.append(
+            Episode(
+                index=i,
+                observations=obs.astype(np.float64),
+                actions=rng.uniform(-1, 1, size=(n, 2)),
+                time=t0 + 0.01 * np.arange(n),
+                physics=rng.normal(size=(n, physics_dim)) if physics_dim else None,
+                goals=rng.normal(size=(n, 2)),
+                goal_reached=rng.random(n) < 0.01,
+            )
+        )
+        t0 += 0.01 * n
+    return episodes
