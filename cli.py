@@ -139,5 +139,26 @@ def show_params(
     typer.echo(yaml.safe_dump(_load(params, set_).model_dump(), sort_keys=False).rstrip())
 
 
+bench_app = typer.Typer(
+    help="Benchmarks: print throughput and memory (timing targets live here, not in tests).",
+    no_args_is_help=True,
+)
+app.add_typer(bench_app, name="bench")
+
+
+@bench_app.command("data")
+@_user_errors
+def bench_data(
+    steps: Annotated[int, typer.Option(help="Dataset size in steps.")] = 1_000_000,
+    params: ParamsOption = Path("params.yaml"),
+    set_: SetOption = None,
+) -> None:
+    """Ingest (generate + write + check) and segment throughput, MCAP bytes/step, segment memory."""
+    from pipeline.bench import bench_data as run
+
+    for name, value in run(_load(params, set_), steps).items():
+        typer.echo(f"{name:28s} {value:,.2f}")
+
+
 if __name__ == "__main__":
     app()
