@@ -139,6 +139,15 @@ def show_params(
     typer.echo(yaml.safe_dump(_load(params, set_).model_dump(), sort_keys=False).rstrip())
 
 
+@app.command("causal-example")
+@_user_errors
+def causal_example() -> None:
+    """Appendix B: two skill models with equal ELBOs; the E-step objective and planning differ."""
+    from pipeline.analysis.causal_example import format_report
+
+    typer.echo(format_report())
+
+
 bench_app = typer.Typer(
     help="Benchmarks: print throughput and memory (timing targets live here, not in tests).",
     no_args_is_help=True,
