@@ -20,6 +20,14 @@ class Paths:
         """The segments directory `data/segments/<name>/`."""
         return self.root / "segments" / name
 
+    def model(self, name: str) -> Path:
+        """The checkpoint directory `data/models/<name>/` (best model + `resume/` state)."""
+        return self.root / "models" / name
+
+    def live(self, stage: str) -> Path:
+        """A stage's dvclive directory `data/reports/<stage>/` (metrics.json, plots/)."""
+        return self.root / "reports" / stage
+
     def report(self, stage: str) -> Path:
         """A stage's metrics JSON `data/reports/<stage>.json`."""
         return self.root / "reports" / f"{stage}.json"

@@ -1,0 +1,58 @@
+"""Building blocks of appendix C: a 2-layer ReLU trunk and Gaussian mean / std heads."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+
+class GaussianHead(nn.Module):
+    """Mean and std networks of appendix C.1: two linear layers each, ReLU after the first.
+
+    The mean has no output activation; the std ends in a softplus (plus `min_std`, so a collapsing
+    std cannot produce an infinite log-likelihood). `shared_std=True` outputs one scalar std for
+    all `out_dim` elements (the paper's maze TAWM, C.3).
+    """
+
+    def __init__(
+        self,
+        in_dim: int,
+        hidden: int,
+        out_dim: int,
+        shared_std: bool = False,
+        min_std: float = 1e-4,
+    ):
+        super().__init__()
+        self.mean = nn.Sequential(nn.Linear(in_dim, hidden), nn.ReLU(), nn.Linear(hidden, out_dim))
+        std_dim = 1 if shared_std else out_dim
+        self.std = nn.Sequential(nn.Linear(in_dim, hidden), nn.ReLU(), nn.Linear(hidden, std_dim))
+        self.out_dim = out_dim
+        self.min_std = min_std
+
+    def forward(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """`h [..., in_dim]` -> mean, std `[..., out_dim]`."""
+        std = F.softplus(self.std(h)) + self.min_std
+        return self.mean(h), std.expand(*h.shape[:-1], self.out_dim)
+
+
+class GaussianMLP(nn.Module):
+    """A 2-layer shared ReLU network followed by a `GaussianHead` (appendix C.2–C.4)."""
+
+    def __init__(
+        self,
+        in_dim: int,
+        hidden: int,
+        out_dim: int,
+        shared_std: bool = False,
+        min_std: float = 1e-4,
+    ):
+        super().__init__()
+        self.trunk = nn.Sequential(
+            nn.Linear(in_dim, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU()
+        )
+        self.head = GaussianHead(hidden, hidden, out_dim, shared_std, min_std)
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """`x [..., in_dim]` -> mean, std `[..., out_dim]`."""
+        return self.head(self.trunk(x))

@@ -1,0 +1,153 @@
+"""The training loop: budget, periodic validation, best checkpoint, resume state, NaN guard.
+
+Parts come in through the constructor (model, updater, samplers, callbacks), so tests can pass
+small real ones. Update steps return dicts of floats; only this loop aggregates and logs them.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import defaultdict
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from pipeline.errors import UserError
+from pipeline.model.skill_model import SkillModel
+from pipeline.training.data import WindowSampler
+from pipeline.training.losses import validation_metrics
+from pipeline.training.state import Progress
+from pipeline.training.updaters import EMUpdater, VIUpdater
+
+
+@dataclass
+class Budget:
+    """When to stop, evaluate and save.
+
+    Attributes:
+        max_steps: Total update steps (over resumed runs).
+        max_minutes: Total wall-clock minutes (over resumed runs); None for no limit.
+        batch_size: Windows per update step (per process).
+        eval_every: Steps between validations (and best-checkpoint updates).
+        checkpoint_every: Steps between resume-state saves.
+    """
+
+    max_steps: int
+    max_minutes: float | None
+    batch_size: int
+    eval_every: int
+    checkpoint_every: int
+
+
+@dataclass
+class Callbacks:
+    """What the loop calls out to (the stage wires files, dvclive and processes in here).
+
+    Attributes:
+        log: `(step, metrics)` after each validation.
+        save_best: `(progress)` when validation s_T NLL improved.
+        save_state: `(progress)` to write the resume state.
+    """
+
+    log: Callable[[int, dict[str, float]], None]
+    save_best: Callable[[Progress], None]
+    save_state: Callable[[Progress], None]
+
+
+def evaluate(
+    model: SkillModel, sampler: WindowSampler, idx: np.ndarray, batch_size: int = 1024
+) -> dict[str, float]:
+    """Mean validation metrics over the windows at positions `idx` (see `validation_metrics`)."""
+    model.eval()
+    sums: dict[str, float] = defaultdict(float)
+    for start in range(0, len(idx), batch_size):
+        chunk = torch.as_tensor(idx[start : start + batch_size])
+        for name, values in validation_metrics(model, sampler.gather(chunk)).items():
+            sums[name] += float(values.sum())
+    model.train()
+    return {f"val/{k}": v / len(idx) for k, v in sums.items()}
+
+
+class Trainer:
+    """Runs updates until the budget is spent, validating and checkpointing on the way."""
+
+    def __init__(
+        self,
+        model: SkillModel,
+        updater: EMUpdater | VIUpdater,
+        train: WindowSampler,
+        val: WindowSampler,
+        val_idx: np.ndarray,
+        budget: Budget,
+        callbacks: Callbacks,
+        progress_bar: bool = True,
+    ):
+        self.model = model
+        self.updater = updater
+        self.train = train
+        self.val = val
+        self.val_idx = val_idx
+        self.budget = budget
+        self.callbacks = callbacks
+        self.progress_bar = progress_bar
+
+    def _out_of_time(self, progress: Progress, started: float, resumed_elapsed: float) -> bool:
+        progress.elapsed_s = resumed_elapsed + time.monotonic() - started
+        limit = self.budget.max_minutes
+        return limit is not None and progress.elapsed_s >= 60 * limit
+
+    def _validate(self, progress: Progress, train_sums: dict[str, float], n: int) -> None:
+        metrics = {f"train/{k}": v / max(n, 1) for k, v in train_sums.items()}
+        metrics |= evaluate(self.model, self.val, self.val_idx)
+        self.callbacks.log(progress.step, metrics)
+        if metrics["val/st_nll"] < progress.best_st_nll:
+            progress.best_st_nll = metrics["val/st_nll"]
+            progress.best_step = progress.step
+            self.callbacks.save_best(progress)
+
+    def fit(self, progress: Progress) -> Progress:
+        """Train from `progress` (fresh or resumed) until the budget is spent.
+
+        Raises:
+            UserError: a loss became NaN/inf (the message names the step; the best checkpoint
+                and the last resume state on disk are left as they were).
+        """
+        b = self.budget
+        started, resumed_elapsed = time.monotonic(), progress.elapsed_s
+        sums: dict[str, float] = defaultdict(float)
+        n = 0
+        self.model.train()
+        with tqdm(
+            total=b.max_steps, initial=progress.step, disable=not self.progress_bar, unit="step"
+        ) as bar:
+            while progress.step < b.max_steps and not self._out_of_time(
+                progress, started, resumed_elapsed
+            ):
+                metrics = self.updater.step(self.train.sample(b.batch_size))
+                if not all(math.isfinite(v) for v in metrics.values()):
+                    bad = ", ".join(k for k, v in metrics.items() if not math.isfinite(v))
+                    raise UserError(
+                        f"training diverged at step {progress.step + 1} ({bad} not finite); "
+                        "the last good checkpoint is kept; lower train.lr_e / train.lr_m "
+                        "or set train.grad_clip"
+                    )
+                progress.step += 1
+                n += 1
+                for k, v in metrics.items():
+                    sums[k] += v
+                bar.update(1)
+                if progress.step % b.eval_every == 0:
+                    self._validate(progress, sums, n)
+                    bar.set_postfix(val_st_nll=f"{progress.best_st_nll:.3f}")
+                    sums, n = defaultdict(float), 0
+                if progress.step % b.checkpoint_every == 0:
+                    self.callbacks.save_state(progress)
+        self._out_of_time(progress, started, resumed_elapsed)
+        if n:  # validate the tail of a run that stopped between evaluations
+            self._validate(progress, sums, n)
+        self.callbacks.save_state(progress)
+        return progress

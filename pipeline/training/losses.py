@@ -1,0 +1,101 @@
+"""The E, M and naive-VI objectives (paper eqs. 1, 15, 16) and validation metrics.
+
+Log-likelihoods are of normalized states/actions, summed over dimensions and (for the policy)
+over the T steps of a window, then averaged over the batch, exactly as in eqs. 15-16.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch.distributions import kl_divergence
+
+from pipeline.model.skill_model import SkillModel
+from pipeline.training.data import WindowBatch
+
+
+def policy_log_prob(model: SkillModel, batch: WindowBatch, z: torch.Tensor) -> torch.Tensor:
+    """log pi_theta(a_0..T-1 | s_0..T-1, z) `[B]`: sum over the T steps."""
+    s = batch.states[:, :-1]
+    z_t = z[:, None, :].expand(-1, s.shape[1], -1)
+    return model.policy_dist(s, z_t).log_prob(batch.actions).sum(-1)
+
+
+def e_step_loss(model: SkillModel, batch: WindowBatch) -> tuple[torch.Tensor, dict[str, float]]:
+    """Eq. 15: -mean[log pi(a|s,z) + log p_omega(z|s_0) - log q_phi(z|tau)], z ~ q (rsample).
+
+    Minimizing it over phi alone minimizes KL(q_phi || p(z|s,a)), the causal posterior of
+    eq. 2; no TAWM term, so q cannot encode where the window ends beyond what the actions say.
+    """
+    q = model.posterior_dist(batch.states[:, :-1], batch.actions)
+    z = q.rsample()
+    log_pi = policy_log_prob(model, batch, z)
+    log_prior = model.prior_dist(batch.states[:, 0]).log_prob(z)
+    log_q = q.log_prob(z)
+    loss = -(log_pi + log_prior - log_q).mean()
+    return loss, {"e_loss": loss.item()}
+
+
+def m_step_loss(model: SkillModel, batch: WindowBatch) -> tuple[torch.Tensor, dict[str, float]]:
+    """Eq. 16: -mean[log pi(a|s,z) + log p_psi(s_T|s_0,z) + log p_omega(z|s_0)], z ~ q.
+
+    z is sampled from the (just updated) posterior without gradient: the M-step updates theta,
+    psi and omega only, and none of their gradients flows through z.
+    """
+    with torch.no_grad():
+        z = model.posterior_dist(batch.states[:, :-1], batch.actions).sample()
+    s0 = batch.states[:, 0]
+    log_pi = policy_log_prob(model, batch, z)
+    log_tawm = model.tawm_dist(s0, z).log_prob(batch.states[:, -1])
+    log_prior = model.prior_dist(s0).log_prob(z)
+    loss = -(log_pi + log_tawm + log_prior).mean()
+    return loss, {
+        "m_loss": loss.item(),
+        "action_nll": -log_pi.mean().item(),
+        "st_nll": -log_tawm.mean().item(),
+        "prior_nll": -log_prior.mean().item(),
+    }
+
+
+def vi_loss(model: SkillModel, batch: WindowBatch) -> tuple[torch.Tensor, dict[str, float]]:
+    """Negative ELBO of eq. 1 over all parameters jointly (the naive-VI baseline, table 3)."""
+    q = model.posterior_dist(batch.states[:, :-1], batch.actions)
+    z = q.rsample()
+    s0 = batch.states[:, 0]
+    log_pi = policy_log_prob(model, batch, z)
+    log_tawm = model.tawm_dist(s0, z).log_prob(batch.states[:, -1])
+    kl = kl_divergence(q, model.prior_dist(s0))
+    loss = -(log_pi + log_tawm - kl).mean()
+    return loss, {
+        "vi_loss": loss.item(),
+        "action_nll": -log_pi.mean().item(),
+        "st_nll": -log_tawm.mean().item(),
+        "kl": kl.mean().item(),
+    }
+
+
+@torch.no_grad()
+def validation_metrics(model: SkillModel, batch: WindowBatch) -> dict[str, torch.Tensor]:
+    """Per-window validation terms `[B]`, with z = the posterior mean (deterministic).
+
+    Returns action NLL per step, s_T NLL, KL(q || p_omega), and s_T errors in raw state units:
+    the TAWM mean given the posterior skill, given the prior-mean skill, and the no-model
+    baseline that predicts s_T = s_0.
+    """
+    q = model.posterior_dist(batch.states[:, :-1], batch.actions)
+    z = q.mean
+    s0, s_t = batch.states[:, 0], batch.states[:, -1]
+    prior = model.prior_dist(s0)
+    horizon = batch.actions.shape[1]
+    std = model.state_std
+
+    def raw_error(pred_n: torch.Tensor) -> torch.Tensor:
+        return ((pred_n - s_t) * std).norm(dim=-1)
+
+    return {
+        "action_nll": -policy_log_prob(model, batch, z) / horizon,
+        "st_nll": -model.tawm_dist(s0, z).log_prob(s_t),
+        "kl": kl_divergence(q, prior),
+        "st_error": raw_error(model.tawm_dist(s0, z).mean),
+        "st_error_prior_mean": raw_error(model.tawm_dist(s0, prior.mean).mean),
+        "st_error_no_model": raw_error(s0),
+    }

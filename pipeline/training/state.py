@@ -1,0 +1,88 @@
+"""Training state for resume: model + optimizer + RNG states, written atomically as one unit.
+
+`resume/` holds `model.safetensors`, `optim.pt` (optimizer and RNG states, loaded with
+`torch.load(weights_only=True)`: tensors, numbers and containers only, never arbitrary objects)
+and `state.json` (step, best metric, elapsed time, and the fingerprint of what was trained).
+The directory is replaced as a whole, so a SIGKILL leaves either the previous or the new state.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from safetensors.torch import load_file, save_file
+
+from pipeline.io import atomic_dir
+from pipeline.model.skill_model import SkillModel
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Progress:
+    """Where training stands."""
+
+    step: int = 0
+    best_step: int = -1
+    best_st_nll: float = float("inf")
+    elapsed_s: float = 0.0
+
+
+def save_state(
+    directory: Path,
+    model: SkillModel,
+    optimizers: dict[str, torch.optim.Optimizer],
+    generator: torch.Generator,
+    progress: Progress,
+    fingerprint: str,
+) -> None:
+    """Write the resume state of a run (replacing the previous one atomically)."""
+    model_state = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
+    optim = {
+        "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
+        "torch_rng": torch.get_rng_state(),
+        "sampler_rng": generator.get_state(),
+    }
+    if torch.cuda.is_available():
+        optim["cuda_rng"] = torch.cuda.get_rng_state_all()
+    with atomic_dir(directory) as tmp:
+        save_file(model_state, tmp / "model.safetensors")
+        torch.save(optim, tmp / "optim.pt")
+        meta = {"fingerprint": fingerprint, "progress": asdict(progress)}
+        (tmp / "state.json").write_text(json.dumps(meta, indent=2) + "\n")
+
+
+def load_state(
+    directory: Path,
+    model: SkillModel,
+    optimizers: dict[str, torch.optim.Optimizer],
+    generator: torch.Generator,
+    fingerprint: str,
+) -> Progress | None:
+    """Restore a previous run's state in place; None if there is none or it is for other params.
+
+    A state written for a different fingerprint (other model config, training params or data)
+    is not an error: that run is simply not continued.
+    """
+    meta_path = directory / "state.json"
+    if not meta_path.exists():
+        return None
+    meta: dict[str, Any] = json.loads(meta_path.read_text())
+    if meta.get("fingerprint") != fingerprint:
+        log.info("previous training state in %s is for other params; starting over", directory)
+        return None
+    device = next(model.parameters()).device
+    model.load_state_dict(load_file(directory / "model.safetensors", device=str(device)))
+    optim = torch.load(directory / "optim.pt", weights_only=True, map_location=device)
+    for name, optimizer in optimizers.items():
+        optimizer.load_state_dict(optim["optimizers"][name])
+    torch.set_rng_state(optim["torch_rng"].cpu())
+    generator.set_state(optim["sampler_rng"].cpu())
+    if "cuda_rng" in optim and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all([s.cpu() for s in optim["cuda_rng"]])
+    return Progress(**meta["progress"])
