@@ -118,6 +118,27 @@ def segment(
 
 @app.command()
 @_user_errors
+def train(
+    params: ParamsOption = Path("params.yaml"),
+    set_: SetOption = None,
+    data: DataOption = Path("data"),
+) -> None:
+    """Learn skills and the temporally abstract world model from the segments (EM, paper §2.1).
+
+    `train.method: em` runs the paper's EM (an E-step on the posterior, then an M-step on
+    policy, world model and prior, per batch); `vi` the naive joint ELBO. Keeps the best model by
+    validation s_T NLL in data/models/<ingest.name>/ and resumes a killed run from its last
+    state. Metrics go to data/reports/train/ (dvclive). Multi-process:
+    `accelerate launch --num_processes 2 cli.py train`.
+    """
+    from pipeline.paths import Paths
+    from stages import train as stage
+
+    stage.run(_load(params, set_), Paths(data))
+
+
+@app.command()
+@_user_errors
 def inspect(
     file: Annotated[Path, typer.Argument(help="An oposm MCAP dataset (data/demos/*.mcap).")],
 ) -> None:

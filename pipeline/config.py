@@ -70,11 +70,45 @@ class SegmentParams(_Section):
     seed: int = Field(0, description="Seed of the episode shuffle that assigns splits.")
 
 
+class TrainParams(_Section):
+    """`oposm train`: EM training of the skill model (paper §2.1, appendix C.5)."""
+
+    method: Literal["em", "vi"] = Field(
+        "em", description="em: the paper's EM (eqs. 15-16); vi: the naive joint ELBO (eq. 1)."
+    )
+    z_dim: int = Field(16, ge=1, description="Skill latent size (paper: 256).")
+    hidden: int = Field(128, ge=1, description="Width of every hidden layer (paper: 256).")
+    tawm_shared_std: bool = Field(
+        True, description="One scalar s_T std for all state dims (paper, mazes) vs per dim."
+    )
+    min_std: float = Field(1e-4, gt=0, description="Floor added to every predicted std.")
+    batch_size: int = Field(100, ge=1, description="Windows per update step (paper: 100).")
+    lr_e: float = Field(5e-4, gt=0, description="Adam learning rate of the E-step (paper: 5e-5).")
+    lr_m: float = Field(
+        5e-4, gt=0, description="Adam learning rate of the M-step and of vi (paper: 5e-5)."
+    )
+    grad_clip: float | None = Field(
+        None, gt=0, description="Clip each step's gradient norm to this; null: no clipping."
+    )
+    max_steps: int = Field(3000, ge=1, description="Update steps (E+M pairs) in total.")
+    max_minutes: float | None = Field(
+        None, gt=0, description="Wall-clock budget in minutes over resumed runs; null: none."
+    )
+    eval_every: int = Field(250, ge=1, description="Steps between validations.")
+    val_windows: int = Field(2000, ge=1, description="Validation windows (a fixed subset).")
+    checkpoint_every: int = Field(250, ge=1, description="Steps between resume-state saves.")
+    seed: int = Field(0, description="Seed of initialization, sampling and noise.")
+    device: Literal["auto", "cpu", "cuda"] = Field(
+        "auto", description="auto: CUDA when available, else CPU."
+    )
+
+
 class Params(_Section):
     """All of `params.yaml`."""
 
     ingest: IngestParams = Field(default_factory=IngestParams)
     segment: SegmentParams = Field(default_factory=SegmentParams)
+    train: TrainParams = Field(default_factory=TrainParams)
 
 
 def _format_validation_error(err: ValidationError, source: str) -> str:
