@@ -152,6 +152,8 @@ def run(params: Params, paths: Paths, progress_bar: bool = True) -> Progress:
     start_step, started = progress.step, time.monotonic()
     progress = trainer.fit(progress)
     run_s = max(time.monotonic() - started, 1e-9)
+    if world > 1:
+        _check_in_sync(accelerator, model)
     if live is not None:
         live.summary |= {
             "steps": progress.step,
@@ -173,6 +175,16 @@ def run(params: Params, paths: Paths, progress_bar: bool = True) -> Progress:
         model_dir,
     )
     return progress
+
+
+def _check_in_sync(accelerator, model: SkillModel) -> None:
+    """Every process must hold the same parameters (same init, averaged gradients)."""
+    flat = torch.cat([p.detach().flatten() for p in model.parameters()])
+    gathered = accelerator.gather(flat[None])
+    diff = float((gathered - gathered[0]).abs().max())
+    if diff != 0.0:
+        raise RuntimeError(f"processes diverged: max parameter difference {diff:g}")
+    log.info("%d processes in sync (identical parameters)", accelerator.num_processes)
 
 
 def _live(directory: Path, resumed: bool):

@@ -43,3 +43,28 @@ def make_episodes(lengths: list[int], seed: int = 0, physics_dim: int = 5) -> li
         )
         t0 += 0.01 * n
     return episodes
+
+
+def make_skill_episodes(n_episodes: int, length: int, chunk: int = 10, seed: int = 0):
+    """A synthetic skill world: a point whose action is constant for `chunk` steps (a "skill"),
+    s = [x, y, vx, vy], x_{t+1} = x_t + 0.05 a_t, v = a_t. Where a window ends depends on the
+    actions the skill takes, so a skill model can predict s_T far better than s_T = s_0."""
+    rng = np.random.default_rng(seed)
+    episodes, t0 = [], 0.0
+    for i in range(n_episodes):
+        n_chunks = -(-length // chunk)
+        directions = rng.uniform(-1, 1, size=(n_chunks, 2))
+        actions = np.repeat(directions, chunk, axis=0)[:length]
+        actions = actions + 0.05 * rng.normal(size=actions.shape)
+        pos = np.cumsum(np.vstack([rng.uniform(-1, 1, size=(1, 2)), 0.05 * actions[:-1]]), 0)
+        vel = np.vstack([np.zeros((1, 2)), actions[:-1]])
+        episodes.append(
+            Episode(
+                index=i,
+                observations=np.hstack([pos, vel]),
+                actions=actions,
+                time=t0 + 0.01 * np.arange(length),
+            )
+        )
+        t0 += 0.01 * length
+    return episodes

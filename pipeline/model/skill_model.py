@@ -42,8 +42,12 @@ class SkillModelConfig:
 
 
 def diag_normal(mean: torch.Tensor, std: torch.Tensor) -> Independent:
-    """A diagonal Gaussian over the last dimension (log_prob sums over it)."""
-    return Independent(Normal(mean, std), 1)
+    """A diagonal Gaussian over the last dimension (log_prob sums over it).
+
+    Argument validation is off: it costs time in the hot loop, and a NaN must reach the
+    training loop's divergence check (which names the step) rather than fail inside torch.
+    """
+    return Independent(Normal(mean, std, validate_args=False), 1, validate_args=False)
 
 
 class SkillPosterior(nn.Module):

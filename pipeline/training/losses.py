@@ -7,7 +7,7 @@ over the T steps of a window, then averaged over the batch, exactly as in eqs. 1
 from __future__ import annotations
 
 import torch
-from torch.distributions import kl_divergence
+from torch.distributions import Independent, kl_divergence
 
 from pipeline.model.skill_model import SkillModel
 from pipeline.training.data import WindowBatch
@@ -20,56 +20,80 @@ def policy_log_prob(model: SkillModel, batch: WindowBatch, z: torch.Tensor) -> t
     return model.policy_dist(s, z_t).log_prob(batch.actions).sum(-1)
 
 
+def e_objective(
+    model: SkillModel, batch: WindowBatch, q: Independent, z: torch.Tensor
+) -> torch.Tensor:
+    """Eq. 15 for given posterior `q` and samples `z [B, z_dim]`:
+    -mean[log pi(a|s,z) + log p_omega(z|s_0) - log q_phi(z|tau)]."""
+    log_pi = policy_log_prob(model, batch, z)
+    log_prior = model.prior_dist(batch.states[:, 0]).log_prob(z)
+    return -(log_pi + log_prior - q.log_prob(z)).mean()
+
+
 def e_step_loss(model: SkillModel, batch: WindowBatch) -> tuple[torch.Tensor, dict[str, float]]:
-    """Eq. 15: -mean[log pi(a|s,z) + log p_omega(z|s_0) - log q_phi(z|tau)], z ~ q (rsample).
+    """Eq. 15 with z ~ q_phi reparameterized.
 
     Minimizing it over phi alone minimizes KL(q_phi || p(z|s,a)), the causal posterior of
     eq. 2; no TAWM term, so q cannot encode where the window ends beyond what the actions say.
     """
     q = model.posterior_dist(batch.states[:, :-1], batch.actions)
-    z = q.rsample()
-    log_pi = policy_log_prob(model, batch, z)
-    log_prior = model.prior_dist(batch.states[:, 0]).log_prob(z)
-    log_q = q.log_prob(z)
-    loss = -(log_pi + log_prior - log_q).mean()
+    loss = e_objective(model, batch, q, q.rsample())
     return loss, {"e_loss": loss.item()}
 
 
-def m_step_loss(model: SkillModel, batch: WindowBatch) -> tuple[torch.Tensor, dict[str, float]]:
-    """Eq. 16: -mean[log pi(a|s,z) + log p_psi(s_T|s_0,z) + log p_omega(z|s_0)], z ~ q.
+def m_objective(
+    model: SkillModel, batch: WindowBatch, z: torch.Tensor
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """Eq. 16 for given skills `z [B, z_dim]`:
+    -mean[log pi(a|s,z) + log p_psi(s_T|s_0,z) + log p_omega(z|s_0)], and its terms `[B]`."""
+    s0 = batch.states[:, 0]
+    terms = {
+        "log_pi": policy_log_prob(model, batch, z),
+        "log_tawm": model.tawm_dist(s0, z).log_prob(batch.states[:, -1]),
+        "log_prior": model.prior_dist(s0).log_prob(z),
+    }
+    return -sum(terms.values()).mean(), terms
 
-    z is sampled from the (just updated) posterior without gradient: the M-step updates theta,
-    psi and omega only, and none of their gradients flows through z.
+
+def m_step_loss(model: SkillModel, batch: WindowBatch) -> tuple[torch.Tensor, dict[str, float]]:
+    """Eq. 16 with z ~ q_phi (the posterior just updated by the E-step).
+
+    z is sampled without gradient: the M-step updates theta, psi and omega only, and none of
+    their gradients flows through z.
     """
     with torch.no_grad():
-        z = model.posterior_dist(batch.states[:, :-1], batch.actions).sample()
-    s0 = batch.states[:, 0]
-    log_pi = policy_log_prob(model, batch, z)
-    log_tawm = model.tawm_dist(s0, z).log_prob(batch.states[:, -1])
-    log_prior = model.prior_dist(s0).log_prob(z)
-    loss = -(log_pi + log_tawm + log_prior).mean()
+        z = model.posterior_dist(batch.states[:, :-1], batch.actions).rsample()
+    loss, terms = m_objective(model, batch, z)
     return loss, {
         "m_loss": loss.item(),
-        "action_nll": -log_pi.mean().item(),
-        "st_nll": -log_tawm.mean().item(),
-        "prior_nll": -log_prior.mean().item(),
+        "action_nll": -terms["log_pi"].mean().item(),
+        "st_nll": -terms["log_tawm"].mean().item(),
+        "prior_nll": -terms["log_prior"].mean().item(),
     }
 
 
-def vi_loss(model: SkillModel, batch: WindowBatch) -> tuple[torch.Tensor, dict[str, float]]:
-    """Negative ELBO of eq. 1 over all parameters jointly (the naive-VI baseline, table 3)."""
-    q = model.posterior_dist(batch.states[:, :-1], batch.actions)
-    z = q.rsample()
+def vi_objective(
+    model: SkillModel, batch: WindowBatch, q: Independent, z: torch.Tensor
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """Negative ELBO of eq. 1 for given `q` and samples `z`, with the KL in closed form."""
     s0 = batch.states[:, 0]
-    log_pi = policy_log_prob(model, batch, z)
-    log_tawm = model.tawm_dist(s0, z).log_prob(batch.states[:, -1])
-    kl = kl_divergence(q, model.prior_dist(s0))
-    loss = -(log_pi + log_tawm - kl).mean()
+    terms = {
+        "log_pi": policy_log_prob(model, batch, z),
+        "log_tawm": model.tawm_dist(s0, z).log_prob(batch.states[:, -1]),
+        "kl": kl_divergence(q, model.prior_dist(s0)),
+    }
+    return -(terms["log_pi"] + terms["log_tawm"] - terms["kl"]).mean(), terms
+
+
+def vi_loss(model: SkillModel, batch: WindowBatch) -> tuple[torch.Tensor, dict[str, float]]:
+    """Eq. 1 over all parameters jointly, z ~ q reparameterized (the naive-VI baseline)."""
+    q = model.posterior_dist(batch.states[:, :-1], batch.actions)
+    loss, terms = vi_objective(model, batch, q, q.rsample())
     return loss, {
         "vi_loss": loss.item(),
-        "action_nll": -log_pi.mean().item(),
-        "st_nll": -log_tawm.mean().item(),
-        "kl": kl.mean().item(),
+        "action_nll": -terms["log_pi"].mean().item(),
+        "st_nll": -terms["log_tawm"].mean().item(),
+        "kl": terms["kl"].mean().item(),
     }
 
 

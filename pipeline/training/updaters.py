@@ -7,6 +7,7 @@ no-op otherwise), clipped, and applied.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import torch
@@ -61,16 +62,27 @@ class EMUpdater:
         self.grad_clip = grad_clip
         self.reduce_grads = reduce_grads
 
-    def step(self, batch: WindowBatch) -> dict[str, float]:
-        e_loss, metrics = e_step_loss(self.model, batch)
+    def e_step(self, batch: WindowBatch) -> dict[str, float]:
+        """One Adam step on the posterior (phi) minimizing eq. 15."""
+        loss, metrics = e_step_loss(self.model, batch)
         metrics["e_grad_norm"] = _apply(
-            e_loss, self.e_params, self.optimizers["e"], self.reduce_grads, self.grad_clip
+            loss, self.e_params, self.optimizers["e"], self.reduce_grads, self.grad_clip
         )
-        m_loss, m_metrics = m_step_loss(self.model, batch)
-        m_metrics["m_grad_norm"] = _apply(
-            m_loss, self.m_params, self.optimizers["m"], self.reduce_grads, self.grad_clip
+        return metrics
+
+    def m_step(self, batch: WindowBatch) -> dict[str, float]:
+        """One Adam step on policy, TAWM and prior (theta, psi, omega) minimizing eq. 16."""
+        loss, metrics = m_step_loss(self.model, batch)
+        metrics["m_grad_norm"] = _apply(
+            loss, self.m_params, self.optimizers["m"], self.reduce_grads, self.grad_clip
         )
-        return metrics | m_metrics
+        return metrics
+
+    def step(self, batch: WindowBatch) -> dict[str, float]:
+        e_metrics = self.e_step(batch)
+        if not math.isfinite(e_metrics["e_loss"]):
+            return e_metrics  # diverged: the loop stops; don't push NaNs into theta, psi, omega
+        return e_metrics | self.m_step(batch)
 
 
 class VIUpdater:
