@@ -1,0 +1,1 @@
+"""Rerun logging of mazes, episodes, plans and model predictions (imported lazily: rerun is big)."""
