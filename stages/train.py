@@ -18,6 +18,7 @@ import torch
 from pipeline.config import Params, TrainParams
 from pipeline.errors import UserError
 from pipeline.model import SkillModel, SkillModelConfig, save_model
+from pipeline.model.checkpoint import CONFIG_FILE, WEIGHTS_FILE
 from pipeline.paths import Paths
 from pipeline.segments import Segments, load_segments
 from pipeline.training.data import WindowSampler
@@ -108,6 +109,9 @@ def run(params: Params, paths: Paths, progress_bar: bool = True) -> Progress:
     else:
         progress = Progress()
         torch.manual_seed(cfg.seed + 1000 * rank)  # each process its own noise from here on
+        if accelerator.is_main_process:  # a best model of other params must not outlive them
+            for stale in (model_dir / WEIGHTS_FILE, model_dir / CONFIG_FILE):
+                stale.unlink(missing_ok=True)
 
     live = _live(paths.live("train"), resumed) if accelerator.is_main_process else None
     extra = {
