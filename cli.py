@@ -90,7 +90,9 @@ def ingest(
     """Record demonstrations into data/demos/<ingest.name>.mcap.
 
     With `ingest.source: maze` a scripted expert (D4RL's maze2d waypoint controller) drives a
-    gymnasium-robotics PointMaze for `ingest.episodes` x `ingest.episode_steps` steps.
+    gymnasium-robotics PointMaze for `ingest.episodes` x `ingest.episode_steps` steps. With
+    `lerobot`, `d4rl` or `minari` an existing dataset is imported (settings in `ingest.lerobot`,
+    `ingest.d4rl`, `ingest.minari`), e.g. `-S ingest.source=d4rl -S ingest.d4rl.path=FILE.hdf5`.
     """
     from pipeline.paths import Paths
     from stages import ingest as stage
@@ -188,6 +190,62 @@ def bench_data(
 
     for name, value in run(_load(params, set_), steps).items():
         typer.echo(f"{name:28s} {value:,.2f}")
+
+
+@bench_app.command("import")
+@_user_errors
+def bench_import(
+    frames: Annotated[int, typer.Option(help="Dataset size in frames.")] = 100_000,
+    source: Annotated[
+        list[str] | None,
+        typer.Option(help="Source to time (repeatable): lerobot, d4rl, minari. Default: all."),
+    ] = None,
+    params: ParamsOption = Path("params.yaml"),
+    set_: SetOption = None,
+) -> None:
+    """Import throughput (frames/s) per source, on data written by each source's own library."""
+    from pipeline.bench import IMPORT_SOURCES
+    from pipeline.bench import bench_import as run
+
+    chosen = tuple(source or IMPORT_SOURCES)
+    unknown = sorted(set(chosen) - set(IMPORT_SOURCES))
+    if unknown:
+        raise UserError(f"unknown source {unknown[0]!r}; use {', '.join(IMPORT_SOURCES)}")
+    for name, value in run(_load(params, set_), frames, chosen).items():
+        typer.echo(f"{name:28s} {value:,.2f}")
+
+
+export_app = typer.Typer(
+    help="Write an oposm dataset in another format, to share it with other tools.",
+    no_args_is_help=True,
+)
+app.add_typer(export_app, name="export")
+
+
+@export_app.command("lerobot")
+@_user_errors
+def export_lerobot(
+    file: Annotated[Path, typer.Argument(help="An oposm MCAP dataset (data/demos/*.mcap).")],
+    root: Annotated[Path, typer.Argument(help="Folder to write the LeRobot dataset into.")],
+    repo_id: Annotated[
+        str | None, typer.Option(help="LeRobot repo id; default local/<dataset name>.")
+    ] = None,
+    task: Annotated[str | None, typer.Option(help="Task string of every frame.")] = None,
+    overwrite: Annotated[bool, typer.Option(help="Replace an existing folder.")] = False,
+) -> None:
+    """Write FILE as a LeRobot v3.0 dataset (LeRobot's own writer) in ROOT.
+
+    Open it with LeRobot's tools (`LeRobotDataset(repo_id, root=ROOT)`) or import it back with
+    `oposm ingest -S ingest.source=lerobot -S ingest.lerobot.root=ROOT`.
+    """
+    from pipeline.sources import export_lerobot as export
+
+    _setup_logging()
+    summary = export(file, root, repo_id=repo_id, task=task, overwrite=overwrite, progress=True)
+    typer.echo(
+        f"wrote {summary.root} ({summary.repo_id}): {summary.episodes} episodes, "
+        f"{summary.frames} frames at {summary.fps} fps"
+    )
 
 
 if __name__ == "__main__":

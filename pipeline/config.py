@@ -22,6 +22,57 @@ class _Section(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
 
+class LeRobotSourceParams(_Section):
+    """`ingest.lerobot`: a LeRobot v3.0 dataset (`ingest.source: lerobot`)."""
+
+    repo_id: str = Field(
+        "local/demos",
+        description="Hugging Face repo id (user/name): fetched from the hub unless `root` or "
+        "$HF_LEROBOT_HOME/<repo_id> holds it; only a label when `root` is set.",
+    )
+    root: str | None = Field(None, description="Local dataset folder (holding meta/info.json).")
+    state_features: list[str] = Field(
+        default_factory=lambda: ["observation.state"],
+        min_length=1,
+        description="Numeric features concatenated, in this order, into the state.",
+    )
+    action_feature: str = Field("action", description="The action feature.")
+
+
+class D4RLSourceParams(_Section):
+    """`ingest.d4rl`: a D4RL hdf5 file (`ingest.source: d4rl`)."""
+
+    path: str | None = Field(None, description="The .hdf5 file.")
+    env_id: Literal[("", *SUPPORTED_ENVS)] = Field(  # type: ignore[valid-type]
+        "",
+        description="For maze2d files, the PointMaze of the same map: coordinates are converted "
+        "to gymnasium-robotics' and the data becomes simulatable. Empty for other files.",
+    )
+    control_period: float | None = Field(
+        None, gt=0, description="Seconds per step; default the maze's dt (required for non-mazes)."
+    )
+
+
+class MinariSourceParams(_Section):
+    """`ingest.minari`: a local Minari dataset (`ingest.source: minari`)."""
+
+    dataset_id: str | None = Field(
+        None, description="Minari id, looked up under MINARI_DATASETS_PATH (~/.minari/datasets)."
+    )
+    path: str | None = Field(None, description="The dataset folder, instead of an id.")
+    state_keys: list[str] = Field(
+        default_factory=lambda: ["observation"],
+        description="Observation dict keys concatenated into the state; [] for array observations.",
+    )
+    action_key: str | None = Field(None, description="Key of a dict action space; null for arrays.")
+    goal_key: str | None = Field(
+        "desired_goal", description="Observation dict key recorded as the goal, when present."
+    )
+    control_period: float | None = Field(
+        None, gt=0, description="Seconds per step; default the environment's dt."
+    )
+
+
 class IngestParams(_Section):
     """`oposm ingest`: demonstrations into `data/demos/<name>.mcap`."""
 
@@ -30,7 +81,10 @@ class IngestParams(_Section):
         pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]*$",
         description="Dataset name: the MCAP file stem and the segments directory name.",
     )
-    source: Literal["maze"] = Field("maze", description="Where demonstrations come from.")
+    source: Literal["maze", "lerobot", "d4rl", "minari"] = Field(
+        "maze",
+        description="Where demonstrations come from: the built-in expert (maze) or an import.",
+    )
     env_id: Literal[tuple(SUPPORTED_ENVS)] = Field(  # type: ignore[valid-type]
         "PointMaze_Medium-v3", description="Gymnasium-robotics maze the expert drives in."
     )
@@ -40,6 +94,9 @@ class IngestParams(_Section):
     expert: ExpertConfig = Field(
         default_factory=ExpertConfig, description="The scripted waypoint expert (D4RL maze2d)."
     )
+    lerobot: LeRobotSourceParams = Field(default_factory=LeRobotSourceParams)
+    d4rl: D4RLSourceParams = Field(default_factory=D4RLSourceParams)
+    minari: MinariSourceParams = Field(default_factory=MinariSourceParams)
 
 
 class SplitParams(_Section):

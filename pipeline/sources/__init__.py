@@ -1,0 +1,74 @@
+"""Importers from other formats into our `DatasetInfo` + `Episode` stream, and LeRobot export.
+
+- `read_lerobot`: a LeRobot v3.0 dataset, through `lerobot`.
+- `read_d4rl`: a D4RL hdf5 file, through h5py (maze2d coordinates converted for PointMaze).
+- `read_minari`: a local Minari dataset, through `minari`.
+- `export_lerobot`: one of our MCAP datasets as a LeRobot v3.0 dataset.
+
+`open_source(params.ingest)` picks the importer named by `ingest.source`. `lerobot` and `minari`
+are imported inside the functions that use them (lerobot takes seconds to import).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from pipeline.errors import UserError
+from pipeline.sources.common import ImportedDataset, is_simulated_maze
+from pipeline.sources.d4rl import read_d4rl, write_d4rl
+from pipeline.sources.lerobot_export import ExportSummary, export_lerobot
+from pipeline.sources.lerobot_import import read_lerobot
+from pipeline.sources.minari_import import read_minari
+
+if TYPE_CHECKING:
+    from pipeline.config import IngestParams
+
+__all__ = [
+    "ExportSummary",
+    "ImportedDataset",
+    "export_lerobot",
+    "is_simulated_maze",
+    "open_source",
+    "read_d4rl",
+    "read_lerobot",
+    "read_minari",
+    "write_d4rl",
+]
+
+
+def open_source(cfg: IngestParams, progress: bool = False) -> ImportedDataset:
+    """Open the import named by `cfg.source` ("lerobot", "d4rl" or "minari") with its section."""
+    if cfg.source == "lerobot":
+        lr = cfg.lerobot
+        return read_lerobot(
+            lr.repo_id,
+            cfg.name,
+            root=lr.root,
+            state_features=lr.state_features,
+            action_feature=lr.action_feature,
+            progress=progress,
+        )
+    if cfg.source == "d4rl":
+        if not cfg.d4rl.path:
+            raise UserError("set ingest.d4rl.path to the D4RL .hdf5 file to import")
+        return read_d4rl(
+            Path(cfg.d4rl.path),
+            cfg.name,
+            env_id=cfg.d4rl.env_id,
+            control_period=cfg.d4rl.control_period,
+            progress=progress,
+        )
+    if cfg.source == "minari":
+        mn = cfg.minari
+        return read_minari(
+            cfg.name,
+            dataset_id=mn.dataset_id,
+            path=mn.path,
+            state_keys=mn.state_keys,
+            action_key=mn.action_key,
+            goal_key=mn.goal_key,
+            control_period=mn.control_period,
+            progress=progress,
+        )
+    raise UserError(f"ingest.source {cfg.source!r} is not an import; use lerobot, d4rl or minari")
