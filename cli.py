@@ -248,5 +248,33 @@ def export_lerobot(
     )
 
 
+@bench_app.command("train")
+@_user_errors
+def bench_train(
+    steps: Annotated[int, typer.Option(help="Timed update steps.")] = 50,
+    params: ParamsOption = Path("params.yaml"),
+    set_: SetOption = None,
+    data: DataOption = Path("data"),
+) -> None:
+    """EM (or VI) update steps/s and sub-trajectories/s at the train params' model size.
+
+    Needs the segments (`oposm segment`). Compare configs with -p params-paper.yaml.
+    """
+    import torch
+
+    from pipeline.paths import Paths
+    from pipeline.segments import load_segments
+    from pipeline.training.bench import bench_train as run
+
+    p = _load(params, set_)
+    device = torch.device(
+        "cuda" if torch.cuda.is_available() and p.train.device != "cpu" else "cpu"
+    )
+    segments = load_segments(Paths(data).segments(p.ingest.name))
+    typer.echo(f"device {device}, method {p.train.method}, z {p.train.z_dim}, h {p.train.hidden}")
+    for name, value in run(p.train, segments, steps, device).items():
+        typer.echo(f"{name:28s} {value:,.2f}")
+
+
 if __name__ == "__main__":
     app()

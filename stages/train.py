@@ -193,5 +193,11 @@ def _check_in_sync(accelerator, model: SkillModel) -> None:
 
 def _live(directory: Path, resumed: bool):
     from dvclive import Live
+    from scmrepo.exceptions import SCMError
 
-    return Live(dir=str(directory), resume=resumed, save_dvc_exp=False, dvcyaml=None)
+    try:
+        return Live(dir=str(directory), resume=resumed, save_dvc_exp=False, dvcyaml=None)
+    except SCMError as exc:  # dvclive asks git for HEAD, which fails in a repo with no commit
+        raise UserError(
+            f"dvclive cannot read the git repository ({exc}); commit once (`git commit`) first"
+        ) from exc

@@ -10,7 +10,11 @@ import pytest
 import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
-TINY = {"ingest": {"episodes": 6, "episode_steps": 150}, "segment": {"window": 20}}
+TINY = {
+    "ingest": {"episodes": 6, "episode_steps": 150},
+    "segment": {"window": 20},
+    "train": {"z_dim": 4, "hidden": 16, "max_steps": 20, "eval_every": 10, "val_windows": 50},
+}
 
 
 def _copy_repository(dest: Path) -> None:
@@ -49,8 +53,11 @@ def _dvc(repo: Path, *args: str) -> str:
 def test_dvc_repro_runs_then_skips_then_reruns_only_what_changed(tmp_path):
     repo = tmp_path / "repo"
     _copy_repository(repo)
-    subprocess.run(["git", "init", "-q"], cwd=repo, check=True)
     _set_params(repo, TINY)
+    for git in (["init", "-q"], ["add", "-A"], ["commit", "-qm", "copy"]):
+        subprocess.run(
+            ["git", "-c", "user.name=t", "-c", "user.email=t@t", *git], cwd=repo, check=True
+        )
 
     first = _dvc(repo, "repro")
     assert "Running stage 'ingest'" in first and "Running stage 'segment'" in first
@@ -62,6 +69,7 @@ def test_dvc_repro_runs_then_skips_then_reruns_only_what_changed(tmp_path):
     _set_params(repo, {"segment": {"window": 10}})
     third = _dvc(repo, "repro")
     assert "Running stage 'segment'" in third and "Running stage 'ingest'" not in third
+    assert "Running stage 'train'" in third  # new windows, new model
 
     metrics = _dvc(repo, "metrics", "show")
     assert "train_windows" in metrics
