@@ -103,6 +103,7 @@ class Trainer:
     def _validate(self, progress: Progress, train_sums: dict[str, float], n: int) -> None:
         metrics = {f"train/{k}": v / max(n, 1) for k, v in train_sums.items()}
         metrics |= evaluate(self.model, self.val, self.val_idx)
+        metrics["time/elapsed_s"] = progress.elapsed_s  # for error-vs-wall-time plots
         self.callbacks.log(progress.step, metrics)
         if metrics["val/st_nll"] < progress.best_st_nll:
             progress.best_st_nll = metrics["val/st_nll"]
