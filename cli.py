@@ -141,6 +141,46 @@ def train(
 
 @app.command()
 @_user_errors
+def dynamics(
+    params: ParamsOption = Path("params.yaml"),
+    set_: SetOption = None,
+    data: DataOption = Path("data"),
+) -> None:
+    """Train the single-step model p(s_t+1 | s_t, a_t), the paper's low-level baseline.
+
+    Gaussian MLP on the train split's transitions; writes data/models/<ingest.name>-dynamics/
+    and data/reports/dynamics.json. `oposm validate` compares it with the skill world model.
+    """
+    from pipeline.paths import Paths
+    from stages import dynamics as stage
+
+    stage.run(_load(params, set_), Paths(data))
+
+
+@app.command()
+@_user_errors
+def validate(
+    params: ParamsOption = Path("params.yaml"),
+    set_: SetOption = None,
+    data: DataOption = Path("data"),
+) -> None:
+    """Check the world model against held-out open-loop rollouts in MuJoCo (paper §4.1, fig. 4).
+
+    From test-split start states restored exactly in the simulator, executes sequences of
+    1..validate.skills skills (from the prior, and inferred from the held-out data) open loop,
+    and compares where the agent ends with the TAWM's prediction and with the single-step model
+    (`oposm dynamics`) rolled forward. Writes data/reports/validate.json (errors, NLL,
+    calibration, wall crossings per horizon), data/reports/validate/*.csv (plots) and
+    data/recordings/validate.rrd (open with `rerun`).
+    """
+    from pipeline.paths import Paths
+    from stages import validate as stage
+
+    stage.run(_load(params, set_), Paths(data))
+
+
+@app.command()
+@_user_errors
 def inspect(
     file: Annotated[Path, typer.Argument(help="An oposm MCAP dataset (data/demos/*.mcap).")],
 ) -> None:

@@ -7,6 +7,7 @@ that names the key instead of a silently ignored setting.
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from pathlib import Path
 from typing import Any, Literal
 
@@ -160,12 +161,52 @@ class TrainParams(_Section):
     )
 
 
+class DynamicsParams(_Section):
+    """`oposm dynamics`: the single-step model p(s_{t+1} | s_t, a_t) (paper §4.1, LLP baseline)."""
+
+    hidden: int = Field(128, ge=1, description="Width of every hidden layer.")
+    min_std: float = Field(1e-4, gt=0, description="Floor added to the predicted std.")
+    batch_size: int = Field(256, ge=1, description="Transitions per Adam step.")
+    lr: float = Field(1e-3, gt=0, description="Adam learning rate.")
+    max_steps: int = Field(10000, ge=1, description="Adam steps.")
+    eval_every: int = Field(1000, ge=1, description="Steps between validations (best kept).")
+    val_transitions: int = Field(5000, ge=1, description="Validation transitions (fixed subset).")
+    seed: int = Field(0, description="Seed of initialization and sampling.")
+    device: Literal["auto", "cpu", "cuda"] = Field(
+        "auto", description="auto: CUDA when available, else CPU."
+    )
+
+
+# `Params.validate` (the section) shadows pydantic's deprecated `BaseModel.validate` classmethod,
+# which nothing here uses (`model_validate` replaces it); the section name matches the stage's.
+warnings.filterwarnings("ignore", 'Field name "validate" in "Params" shadows', UserWarning)
+
+
+class ValidateParams(_Section):
+    """`oposm validate`: TAWM vs single-step model on held-out open-loop rollouts (paper §4.1)."""
+
+    starts: int = Field(100, ge=1, description="Held-out start states from test episodes.")
+    skills: int = Field(5, ge=1, description="Skills per open-loop sequence (horizons 1..L).")
+    repeats: int = Field(4, ge=1, description="Executions of each skill sequence.")
+    sample_actions: bool = Field(
+        True, description="Sample actions from the policy (true) or take its mean."
+    )
+    particles: int = Field(64, ge=1, description="Samples propagating TAWM uncertainty.")
+    record_starts: int = Field(4, ge=0, description="Start states drawn in the Rerun recording.")
+    seed: int = Field(0, description="Seed of starts, prior skills, action noise, particles.")
+    device: Literal["auto", "cpu", "cuda"] = Field(
+        "auto", description="auto: CUDA when available, else CPU (the simulator runs on CPU)."
+    )
+
+
 class Params(_Section):
     """All of `params.yaml`."""
 
     ingest: IngestParams = Field(default_factory=IngestParams)
     segment: SegmentParams = Field(default_factory=SegmentParams)
     train: TrainParams = Field(default_factory=TrainParams)
+    dynamics: DynamicsParams = Field(default_factory=DynamicsParams)
+    validate: ValidateParams = Field(default_factory=ValidateParams)
 
 
 def _format_validation_error(err: ValidationError, source: str) -> str:

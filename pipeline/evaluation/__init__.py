@@ -1,0 +1,1 @@
+"""Closed-loop evaluation: tasks, batched environments, episodes and success statistics."""

@@ -1,0 +1,110 @@
+"""Validate stage: the world model vs held-out open-loop MuJoCo rollouts and a single-step model.
+
+Reads the segments, the skill model and the single-step model; writes `data/reports/validate.json`
+(DVC metrics), `data/reports/validate/*.csv` (DVC plots) and `data/recordings/validate.rrd`
+(Rerun, figure 4 of the paper).
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+from pipeline.config import Params
+from pipeline.envs.maze import SUPPORTED_ENVS, make_maze_env, maze_layout
+from pipeline.errors import UserError
+from pipeline.evaluation.validate import (
+    ValidationConfig,
+    check_same_environment,
+    end_position_table,
+    error_table,
+    run_validation,
+    validation_metrics,
+)
+from pipeline.io import atomic_path, write_json
+from pipeline.model import load_model
+from pipeline.model.dynamics import load_dynamics
+from pipeline.paths import Paths
+from pipeline.segments import load_segments
+from stages.dynamics import dynamics_dir, resolve_device, single_thread
+
+log = logging.getLogger(__name__)
+
+
+def recording_path(paths: Paths) -> Path:
+    """`data/recordings/validate.rrd`."""
+    return paths.root / "recordings" / "validate.rrd"
+
+
+def write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
+    """Rows of equal keys as a CSV file with a header, atomically."""
+    with atomic_path(path) as tmp, tmp.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def run(params: Params, paths: Paths) -> dict[str, Any]:
+    """Run the validation of `data/models/<name>/` on `data/segments/<name>/`; return the report."""
+    started = time.monotonic()
+    cfg, name = params.validate, params.ingest.name
+    segments = load_segments(paths.segments(name))
+    info = segments.info
+    if info.env_id not in SUPPORTED_ENVS:
+        raise UserError(
+            f"dataset '{info.name}' has no simulatable environment (env_id {info.env_id!r}); "
+            f"validate needs one of {', '.join(SUPPORTED_ENVS)}"
+        )
+    device = resolve_device(cfg.device, "validate.device")
+    model, meta = load_model(paths.model(name), device=device)
+    dynamics, dyn_meta = load_dynamics(dynamics_dir(paths, name), device=device)
+    check_same_environment(info, meta, f"the skill model in {paths.model(name)}")
+    check_same_environment(info, dyn_meta, f"the dynamics model in {dynamics_dir(paths, name)}")
+
+    horizon = int(meta["window"]) - 1
+    vcfg = ValidationConfig(**cfg.model_dump(exclude={"record_starts", "device"}))
+    with single_thread(device):
+        result = run_validation(model, dynamics, segments, horizon, vcfg, device)
+    layout = maze_layout(make_maze_env(info.env_id, **info.env_kwargs))
+    norm = (model.state_mean.cpu().numpy(), model.state_std.cpu().numpy())
+    report = validation_metrics(result, info.state_names, norm, layout)
+
+    plots = paths.live("validate")
+    write_csv(plots / "error_vs_horizon.csv", error_table(report))
+    write_csv(plots / "end_positions.csv", end_position_table(result, info.state_names))
+    if cfg.record_starts:
+        from pipeline.viz.validate import write_recording
+
+        write_recording(
+            recording_path(paths),
+            result,
+            layout,
+            info.state_names,
+            info.control_period,
+            cfg.record_starts,
+        )
+    report["timing"]["total_s"] = time.monotonic() - started
+    write_json(paths.report("validate"), report)
+    _log(report)
+    return report
+
+
+def _log(report: dict[str, Any]) -> None:
+    for mode in ("prior", "posterior"):
+        for key, m in report[mode].items():
+            log.info(
+                "%-9s %-8s %4d steps: position error TAWM %.3f m, single-step %.3f m, "
+                "no model %.3f m; TAWM within 1/2 sigma %.2f/%.2f; single-step in walls %.0f%%",
+                mode,
+                key,
+                m["steps"],
+                m["tawm_error_mean"],
+                m["single_step_error_mean"],
+                m["no_model_error_mean"],
+                m["tawm_within_1sigma"],
+                m["tawm_within_2sigma"],
+                100 * m["single_step_wall_crossing"],
+            )
