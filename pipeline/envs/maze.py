@@ -13,6 +13,7 @@ import functools
 import io
 import math
 import warnings
+from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
@@ -105,7 +106,11 @@ def make_maze_env(env_id: str, maze_map: list[list[int | str]] | None = None, **
     register_envs()
     if maze_map is not None:
         kwargs["maze_map"] = _check_maze_map(maze_map)
-    return gym.make(env_id, **kwargs)
+    env = gym.make(env_id, **kwargs)
+    # gymnasium-robotics writes the maze's MJCF to /tmp and never deletes it; MuJoCo has loaded
+    # the model by now, so remove it (otherwise every env leaks a file).
+    Path(env.unwrapped.tmp_xml_file_path).unlink(missing_ok=True)
+    return env
 
 
 def point_env(env: gym.Env):
