@@ -14,6 +14,8 @@ TINY = {
     "ingest": {"episodes": 6, "episode_steps": 150},
     "segment": {"window": 20},
     "train": {"z_dim": 4, "hidden": 16, "max_steps": 20, "eval_every": 10, "val_windows": 50},
+    "dynamics": {"hidden": 16, "max_steps": 50, "eval_every": 25, "val_transitions": 200},
+    "validate": {"starts": 5, "skills": 2, "repeats": 2, "particles": 8, "record_starts": 1},
 }
 
 
