@@ -181,6 +181,62 @@ def validate(
 
 @app.command()
 @_user_errors
+def deploy(
+    params: ParamsOption = Path("params.yaml"),
+    set_: SetOption = None,
+    data: DataOption = Path("data"),
+) -> None:
+    """Plan skill sequences in MuJoCo for new goals and report success (paper §3, §4.2).
+
+    Model-predictive control: CEM over `deploy.planner.horizon` whitened skills, rolled forward
+    with the world model, for `deploy.num_envs` environments at once; the first skill runs for
+    tau steps with the low-level policy, then it replans. Tasks: random_goal (goals from the
+    training data), corners (D4RL's opposite corners), goal (deploy.goal). Writes
+    data/reports/deploy.json (success with 95 % Wilson intervals, steps, planning latency),
+    data/reports/deploy/episodes.json and data/recordings/deploy/*.rrd (`oposm view`).
+    """
+    from pipeline.evaluation.report import format_summary
+    from pipeline.paths import Paths
+    from stages import deploy as stage
+
+    typer.echo(format_summary(stage.run(_load(params, set_), Paths(data))))
+
+
+@app.command()
+@_user_errors
+def view(
+    recordings: Annotated[
+        list[Path] | None,
+        typer.Argument(
+            help="Recordings (.rrd) or folders of them; default data/recordings/deploy."
+        ),
+    ] = None,
+    web: Annotated[
+        bool, typer.Option(help="Serve the web viewer instead of the native one.")
+    ] = False,
+    dry_run: Annotated[bool, typer.Option(help="Print the rerun command, do not run it.")] = False,
+) -> None:
+    """Open deploy (or validate) recordings in the Rerun viewer.
+
+    Same as `rerun data/recordings/deploy/*.rrd`; each episode is one recording, listed in the
+    viewer's recording panel, laid out with the map beside the plots.
+    """
+    import subprocess
+
+    files: list[Path] = []
+    for path in recordings or [Path("data/recordings/deploy")]:
+        found = sorted(path.glob("*.rrd")) if path.is_dir() else [path] if path.exists() else []
+        if not found:
+            raise UserError(f"no recordings at {path}; run `oposm deploy` first")
+        files += found
+    command = [sys.executable, "-m", "rerun", *(["--web-viewer"] if web else []), *map(str, files)]
+    typer.echo(" ".join(command))
+    if not dry_run:
+        raise typer.Exit(subprocess.run(command).returncode)
+
+
+@app.command()
+@_user_errors
 def inspect(
     file: Annotated[Path, typer.Argument(help="An oposm MCAP dataset (data/demos/*.mcap).")],
 ) -> None:
@@ -314,6 +370,26 @@ def bench_train(
     typer.echo(f"device {device}, method {p.train.method}, z {p.train.z_dim}, h {p.train.hidden}")
     for name, value in run(p.train, segments, steps, device).items():
         typer.echo(f"{name:28s} {value:,.2f}")
+
+
+@bench_app.command("plan")
+@_user_errors
+def bench_plan(
+    envs: Annotated[int, typer.Option(help="Environments planned for at once.")] = 64,
+    repeats: Annotated[int, typer.Option(help="Timed one-environment replans.")] = 10,
+    batch_repeats: Annotated[int, typer.Option(help="Timed batched replans.")] = 3,
+    params: ParamsOption = Path("params.yaml"),
+    set_: SetOption = None,
+    data: DataOption = Path("data"),
+) -> None:
+    """Planning latency per replan (one env) and plans/s (--envs at once), for deploy.planner
+    and the paper's table 14 params. Needs a trained model (`oposm train`)."""
+    from pipeline.bench import bench_plan as run
+    from pipeline.paths import Paths
+
+    p = _load(params, set_)
+    for name, value in run(p, Paths(data), envs, repeats, batch_repeats).items():
+        typer.echo(f"{name:32s} {value:,.4f}")
 
 
 if __name__ == "__main__":

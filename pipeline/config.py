@@ -199,6 +199,69 @@ class ValidateParams(_Section):
     )
 
 
+class PlannerParams(_Section):
+    """`deploy.planner`: CEM over whitened skill sequences (paper §3, appendix C.6, table 14)."""
+
+    horizon: int = Field(10, ge=1, description="Skills per plan, L (paper: 10).")
+    candidates: int = Field(100, ge=1, description="Candidates per CEM iteration, K (paper: 100).")
+    elites: int = Field(20, ge=1, description="Candidates the Gaussian is refit to, N_keep.")
+    iterations: int = Field(20, ge=1, description="Maximum CEM iterations, N_iters (paper: 100).")
+    init_std: float = Field(1.0, gt=0, description="Initial epsilon std (1: the skill prior).")
+    min_std: float = Field(0.0, ge=0, description="Floor on the refit epsilon std.")
+    prior_weight: float = Field(
+        2.0,
+        ge=0,
+        description="Weight of the skill-prior penalty mean(eps^2) added to the task cost "
+        "(0: the paper's task cost alone).",
+    )
+    stop_cost: float | None = Field(
+        None, gt=0, description="Stop a plan once its objective is below this; null: never."
+    )
+    warm_start: bool = Field(True, description="Start replans from the previous plan, shifted.")
+
+    @model_validator(mode="after")
+    def _elites_fit(self) -> PlannerParams:
+        if self.elites > self.candidates:
+            raise ValueError(f"elites ({self.elites}) must be <= candidates ({self.candidates})")
+        return self
+
+
+class DeployParams(_Section):
+    """`oposm deploy`: skill MPC in the maze of the training data, success rates, recordings."""
+
+    tasks: list[Literal["corners", "random_goal", "goal"]] = Field(
+        default_factory=lambda: ["random_goal", "corners"],
+        min_length=1,
+        description="corners: D4RL's opposite-corner task; random_goal: goals from training "
+        "data, random start cell; goal: `goal` from random start cells.",
+    )
+    episodes: int = Field(100, ge=1, description="Episodes per task.")
+    goal: list[float] | None = Field(
+        None, min_length=2, max_length=2, description="[x, y] of the `goal` task."
+    )
+    num_envs: int = Field(100, ge=1, description="Environments stepped and planned together.")
+    replan_every: int | None = Field(
+        None, ge=1, description="Steps per executed skill, tau; null: the model's T (window - 1)."
+    )
+    sample_actions: bool = Field(
+        True, description="Sample a ~ pi(a | s, z) as in §3 (else the policy's mean action)."
+    )
+    max_steps: int | None = Field(
+        None, ge=1, description="Step limit per episode; null: D4RL's (300/600/800)."
+    )
+    success_radius: float = Field(0.5, gt=0, description="Success distance (paper, D4RL: 0.5).")
+    start_noise: float = Field(0.1, ge=0, description="Uniform +- noise on start positions (m).")
+    record_episodes: int = Field(10, ge=0, description="Episodes per task with a recording.")
+    planner: PlannerParams = Field(default_factory=PlannerParams)
+    threads: int | None = Field(
+        1, ge=1, description="Torch CPU threads; null: torch's default (all cores)."
+    )
+    seed: int = Field(0, description="Seed of tasks, CEM noise and action noise.")
+    device: Literal["auto", "cpu", "cuda"] = Field(
+        "auto", description="auto: CUDA when available, else CPU (the simulator runs on CPU)."
+    )
+
+
 class Params(_Section):
     """All of `params.yaml`."""
 
@@ -207,6 +270,7 @@ class Params(_Section):
     train: TrainParams = Field(default_factory=TrainParams)
     dynamics: DynamicsParams = Field(default_factory=DynamicsParams)
     validate: ValidateParams = Field(default_factory=ValidateParams)
+    deploy: DeployParams = Field(default_factory=DeployParams)
 
 
 def _format_validation_error(err: ValidationError, source: str) -> str:

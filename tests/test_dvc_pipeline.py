@@ -16,6 +16,12 @@ TINY = {
     "train": {"z_dim": 4, "hidden": 16, "max_steps": 20, "eval_every": 10, "val_windows": 50},
     "dynamics": {"hidden": 16, "max_steps": 50, "eval_every": 25, "val_transitions": 200},
     "validate": {"starts": 5, "skills": 2, "repeats": 2, "particles": 8, "record_starts": 1},
+    "deploy": {
+        "episodes": 2,
+        "max_steps": 40,
+        "record_episodes": 1,
+        "planner": {"horizon": 2, "candidates": 8, "elites": 2, "iterations": 2},
+    },
 }
 
 
@@ -64,6 +70,7 @@ def test_dvc_repro_runs_then_skips_then_reruns_only_what_changed(tmp_path):
     first = _dvc(repo, "repro")
     assert "Running stage 'ingest'" in first and "Running stage 'segment'" in first
     assert (repo / "data/segments/pointmaze-medium/segments.json").exists()
+    assert "Running stage 'deploy'" in first and "random_goal  success" in first
 
     second = _dvc(repo, "repro")
     assert "Running stage" not in second

@@ -1,0 +1,232 @@
+"""Closed-loop evaluation episodes: many environments stepped together under one skill MPC agent.
+
+Episodes run in waves of as many as there are environment slots. All episodes of a wave start
+together, so they replan at the same steps (every tau) with one batched planning call; an episode
+that reaches its goal, runs out of steps or fails drops out of the batch. A failure (an exception in
+one slot's simulation, a non-finite action or prediction) ends that episode only, with its error
+recorded; an exception in a batched call ends the episodes in that call; the other results stay.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from pipeline.evaluation.maze_batch import MazeBatch
+from pipeline.evaluation.tasks import EpisodeSpec
+from pipeline.planning.mpc import SkillMPC
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """How episodes are run and judged.
+
+    Attributes:
+        max_steps: Step limit per episode (D4RL: 300 umaze, 600 medium, 800 large).
+        replan_every: Steps each skill runs before replanning [tau].
+        success_radius: Success = within this distance of the goal (paper, D4RL: 0.5).
+        gym_radius: Also reported: gymnasium-robotics' success distance (0.45).
+    """
+
+    max_steps: int
+    replan_every: int
+    success_radius: float = 0.5
+    gym_radius: float = 0.45
+
+
+@dataclass
+class EpisodeTrace:
+    """What happened in one episode, for recordings.
+
+    Attributes:
+        states: `[n + 1, sd]` s_0 .. s_n.
+        actions: `[n, ad]` the actions sent.
+        replan_steps: Step index of each replan.
+        plans: Per replan, `[L + 1, sd]` the TAWM's predicted states of the chosen plan.
+        plan_costs: Per replan, the plan's predicted cost.
+    """
+
+    states: list[np.ndarray] = field(default_factory=list)
+    actions: list[np.ndarray] = field(default_factory=list)
+    replan_steps: list[int] = field(default_factory=list)
+    plans: list[np.ndarray] = field(default_factory=list)
+    plan_costs: list[float] = field(default_factory=list)
+
+
+@dataclass
+class EpisodeResult:
+    """Outcome of one episode (`to_json` leaves the trace out).
+
+    Attributes:
+        spec: The episode's task, start, goal and seed.
+        steps: Steps executed.
+        steps_to_goal: First step (1-based) within `success_radius`, or None.
+        steps_to_goal_gym: First step within `gym_radius`, or None.
+        min_distance: Closest distance to the goal.
+        final_distance: Distance at the end.
+        replans: Planning calls for this episode.
+        error: What failed, or None.
+        trace: States, actions and plans.
+    """
+
+    spec: EpisodeSpec
+    steps: int = 0
+    steps_to_goal: int | None = None
+    steps_to_goal_gym: int | None = None
+    min_distance: float = float("inf")
+    final_distance: float = float("inf")
+    replans: int = 0
+    error: str | None = None
+    trace: EpisodeTrace = field(default_factory=EpisodeTrace)
+
+    @property
+    def success(self) -> bool:
+        return self.steps_to_goal is not None
+
+    def to_json(self) -> dict:
+        s = self.spec
+        return {
+            "task": s.task,
+            "episode": s.index,
+            "seed": s.seed,
+            "start": s.start.tolist(),
+            "goal": s.goal.tolist(),
+            "success": self.success,
+            "success_gym": self.steps_to_goal_gym is not None,
+            "steps": self.steps,
+            "steps_to_goal": self.steps_to_goal,
+            "steps_to_goal_gym": self.steps_to_goal_gym,
+            "min_distance": self.min_distance,
+            "final_distance": self.final_distance,
+            "replans": self.replans,
+            "error": self.error,
+        }
+
+
+@dataclass(frozen=True)
+class PlanCall:
+    """Wall time of one batched planning call and how many environments it planned for."""
+
+    seconds: float
+    envs: int
+
+
+def _describe(exc: BaseException) -> str:
+    return f"{type(exc).__name__}: {exc}".splitlines()[0]
+
+
+class _Wave:
+    """The state of one wave of episodes (one per slot) while it runs."""
+
+    def __init__(self, envs: MazeBatch, specs: list[EpisodeSpec]):
+        self.envs = envs
+        self.results = [EpisodeResult(spec) for spec in specs]
+        self.goals = np.stack([s.goal for s in specs])
+        self.states = np.stack([s.start for s in specs]).astype(np.float64)
+        self.alive = np.ones(len(specs), dtype=bool)
+        for i, spec in enumerate(specs):
+            envs.reset(i, spec.start)
+            self.states[i] = envs.state(i)
+            self.results[i].trace.states.append(self.states[i].copy())
+
+    def fail(self, rows: np.ndarray, message: str) -> None:
+        for i in rows:
+            if self.alive[i]:
+                log.warning("episode %s/%d failed: %s", *self._name(i), message)
+                self.results[i].error = message
+                self.alive[i] = False
+
+    def _name(self, i: int) -> tuple[str, int]:
+        return self.results[i].spec.task, self.results[i].spec.index
+
+
+def _replan(agent: SkillMPC, wave: _Wave, rows: np.ndarray, t: int, calls: list[PlanCall]) -> None:
+    started = time.perf_counter()
+    plan = agent.replan(rows, wave.states[rows])
+    if plan.states.device.type == "cuda":
+        torch.cuda.synchronize()
+    calls.append(PlanCall(time.perf_counter() - started, len(rows)))
+    predicted = plan.states.double().cpu().numpy()
+    costs = plan.cost.double().cpu().numpy()
+    finite = np.isfinite(costs) & np.isfinite(predicted).all(axis=(1, 2))
+    for j, i in enumerate(rows):
+        result = wave.results[i]
+        result.replans += 1
+        result.trace.replan_steps.append(t)
+        result.trace.plans.append(predicted[j])
+        result.trace.plan_costs.append(float(costs[j]))
+    wave.fail(rows[~finite], "the world model predicted non-finite states for every candidate")
+
+
+def _step(wave: _Wave, rows: np.ndarray, actions: np.ndarray, t: int, cfg: RunConfig) -> None:
+    for j, i in enumerate(rows):
+        result = wave.results[i]
+        try:
+            wave.states[i] = wave.envs.step(i, actions[j])
+        except Exception as exc:  # one slot's failure must not end the others' episodes
+            wave.fail(np.array([i]), _describe(exc))
+            continue
+        result.steps = t + 1
+        result.trace.actions.append(actions[j].copy())
+        result.trace.states.append(wave.states[i].copy())
+        d = float(np.linalg.norm(wave.states[i, :2] - wave.goals[i]))
+        result.final_distance = d
+        result.min_distance = min(result.min_distance, d)
+        if result.steps_to_goal is None and d <= cfg.success_radius:
+            result.steps_to_goal = t + 1
+        if result.steps_to_goal_gym is None and d <= cfg.gym_radius:
+            result.steps_to_goal_gym = t + 1
+        if result.steps_to_goal is not None and result.steps_to_goal_gym is not None:
+            wave.alive[i] = False
+
+
+def run_wave(
+    agent: SkillMPC, envs: MazeBatch, specs: list[EpisodeSpec], cfg: RunConfig
+) -> tuple[list[EpisodeResult], list[PlanCall]]:
+    """Run `len(specs) <= len(envs)` episodes together until each ends.
+
+    An episode ends when it is within both radii of its goal, at `cfg.max_steps`, or on failure.
+    """
+    wave = _Wave(envs, specs)
+    agent.reset(wave.goals, [s.seed for s in specs])
+    calls: list[PlanCall] = []
+    for t in range(cfg.max_steps):
+        rows = np.flatnonzero(wave.alive)
+        if rows.size == 0:
+            break
+        try:
+            if t % cfg.replan_every == 0:
+                _replan(agent, wave, rows, t, calls)
+                rows = np.flatnonzero(wave.alive)
+            actions = agent.act(rows, wave.states[rows])
+        except Exception as exc:  # a batched call failed: these episodes end, results stay
+            wave.fail(rows, _describe(exc))
+            continue
+        _step(wave, rows, actions, t, cfg)
+    return wave.results, calls
+
+
+def run_episodes(
+    agent: SkillMPC,
+    envs: MazeBatch,
+    specs: list[EpisodeSpec],
+    cfg: RunConfig,
+    on_wave: Callable[[list[EpisodeResult]], None] | None = None,
+) -> tuple[list[EpisodeResult], list[PlanCall]]:
+    """Run all `specs` in waves of `len(envs)`; call `on_wave` with each wave's results."""
+    results: list[EpisodeResult] = []
+    calls: list[PlanCall] = []
+    for start in range(0, len(specs), len(envs)):
+        wave_results, wave_calls = run_wave(agent, envs, specs[start : start + len(envs)], cfg)
+        results += wave_results
+        calls += wave_calls
+        if on_wave is not None:
+            on_wave(wave_results)
+    return results, calls

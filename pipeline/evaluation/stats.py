@@ -1,0 +1,81 @@
+"""Success rates with Wilson score intervals, steps-to-goal and planning latency summaries."""
+
+from __future__ import annotations
+
+import math
+from statistics import NormalDist
+
+import numpy as np
+
+from pipeline.evaluation.episodes import EpisodeResult, PlanCall
+
+
+def wilson_interval(successes: int, n: int, confidence: float = 0.95) -> tuple[float, float]:
+    """Wilson score interval for a binomial proportion (Wilson, 1927).
+
+    Unlike the normal approximation it stays inside [0, 1] and is sensible at 0 or n successes
+    (e.g. 100 / 100 -> [0.963, 1.0]). Written out because it is six lines and scipy / statsmodels
+    are not dependencies.
+    """
+    if n == 0:
+        return 0.0, 1.0
+    z = NormalDist().inv_cdf(0.5 + confidence / 2)
+    p = successes / n
+    denom = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / denom
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def _quantiles(values: list[float] | np.ndarray) -> dict[str, float | None]:
+    if len(values) == 0:
+        return {"mean": None, "p50": None, "p95": None, "max": None}
+    v = np.asarray(values, dtype=np.float64)
+    return {
+        "mean": float(v.mean()),
+        "p50": float(np.percentile(v, 50)),
+        "p95": float(np.percentile(v, 95)),
+        "max": float(v.max()),
+    }
+
+
+def task_summary(results: list[EpisodeResult], dt: float) -> dict:
+    """Success (paper's and gymnasium's radius) with 95 % Wilson intervals, steps and errors."""
+    n = len(results)
+    wins = sum(r.success for r in results)
+    wins_gym = sum(r.steps_to_goal_gym is not None for r in results)
+    steps = [r.steps_to_goal for r in results if r.steps_to_goal is not None]
+    lo, hi = wilson_interval(wins, n)
+    lo_g, hi_g = wilson_interval(wins_gym, n)
+    return {
+        "episodes": n,
+        "successes": wins,
+        "success_rate": wins / n if n else 0.0,
+        "success_ci95_low": lo,
+        "success_ci95_high": hi,
+        "success_rate_r045": wins_gym / n if n else 0.0,
+        "success_r045_ci95_low": lo_g,
+        "success_r045_ci95_high": hi_g,
+        "steps_to_goal": _quantiles(steps),
+        "seconds_to_goal_mean": float(np.mean(steps)) * dt if steps else None,
+        "replans_mean": float(np.mean([r.replans for r in results])) if n else 0.0,
+        "final_distance_mean": float(np.mean([r.final_distance for r in results])) if n else 0.0,
+        "errors": sum(r.error is not None for r in results),
+    }
+
+
+def latency_summary(calls: list[PlanCall]) -> dict:
+    """Per planning call (one batched call per replan) and per environment planned for."""
+    per_call = [c.seconds for c in calls]
+    per_env = [c.seconds / c.envs for c in calls if c.envs]
+    total_s = sum(per_call)
+    planned = sum(c.envs for c in calls)
+    return {
+        "calls": len(calls),
+        "plans": planned,
+        "envs_per_call_mean": planned / len(calls) if calls else 0.0,
+        "call_latency_s": _quantiles(per_call),
+        "per_env_latency_s": _quantiles(per_env),
+        "plans_per_s": planned / total_s if total_s > 0 else 0.0,
+        "total_s": total_s,
+    }

@@ -1,0 +1,30 @@
+"""Task costs over predicted state sequences (the planner only ever sees predictions, paper §3)."""
+
+from __future__ import annotations
+
+import torch
+
+
+class GoalCost:
+    """Goal reaching as in the paper's maze2d experiments (§4.2): the cost of a predicted sequence
+    is the L2 distance between the goal and the predicted state nearest to it.
+
+    Sparse: one value per plan, whichever skill gets closest; no per-step reward. The current state
+    s_0 is not a prediction and is left out, so every candidate is scored by where it leads.
+
+    Args:
+        goals: `[B, G]` one goal per problem of the planning batch (e.g. `[x, y]`).
+        dims: The state dimensions the goal is compared with (default: the first G).
+    """
+
+    def __init__(self, goals: torch.Tensor, dims: tuple[int, ...] | None = None):
+        self.goals = goals
+        self.dims = list(dims) if dims is not None else list(range(goals.shape[-1]))
+        if len(self.dims) != goals.shape[-1]:
+            raise ValueError(f"goal has {goals.shape[-1]} dims but dims={self.dims}")
+
+    def __call__(self, states: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+        """Predicted `states [A, K, L + 1, sd]` (0: s_0) of problems `rows [A]` -> `[A, K]`."""
+        reached = states[:, :, 1:, self.dims]  # [A, K, L, G]
+        goal = self.goals[rows][:, None, None, :]  # [A, 1, 1, G]
+        return torch.linalg.vector_norm(reached - goal, dim=-1).amin(dim=-1)

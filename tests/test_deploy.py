@@ -1,0 +1,231 @@
+"""Deploy: tasks, batched simulators, success statistics, failure isolation, and the real
+`oposm deploy` on a tiny trained model with its report and Rerun recordings read back."""
+
+import json
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+import yaml
+from rerun.chunk import RrdReader
+from typer.testing import CliRunner
+
+from cli import app
+from pipeline.envs import make_maze_env, maze_layout
+from pipeline.envs.maze import layout_cell
+from pipeline.errors import UserError
+from pipeline.evaluation.episodes import RunConfig, run_episodes
+from pipeline.evaluation.maze_batch import MazeBatch, SimulationError
+from pipeline.evaluation.stats import wilson_interval
+from pipeline.evaluation.tasks import EpisodeSpec, MazeTasks, check_goal
+from pipeline.model import SkillModel, SkillModelConfig, load_model, save_model
+from pipeline.planning import CEMConfig, PlannerConfig, SkillPlanner
+from pipeline.planning.mpc import SkillMPC
+
+ENV_ID = "PointMaze_Medium-v3"
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def layout():
+    return maze_layout(make_maze_env(ENV_ID))
+
+
+def test_wilson_interval_known_values():
+    lo, hi = wilson_interval(95, 100)
+    assert (round(lo, 4), round(hi, 4)) == (0.8882, 0.9785)  # statsmodels: (0.88825, 0.97846)
+    lo, hi = wilson_interval(100, 100)
+    assert round(lo, 4) == 0.9630 and hi == 1.0
+    assert wilson_interval(0, 0) == (0.0, 1.0)
+
+
+def test_tasks_follow_their_definitions(layout):
+    locations = np.array([[1.5, -0.4], [-2.6, 2.4], [0.2, 0.6]])
+    tasks = MazeTasks(layout, locations, start_noise=0.1, seed=3)
+    corners = tasks.episodes("corners", 3)
+    for spec in corners:  # medium: cell (1, 1) -> cell (6, 6), D4RL's goal
+        assert np.allclose(spec.goal, [2.5, -2.5])
+        assert np.all(np.abs(spec.start[:2] - [-2.5, 2.5]) <= 0.1)
+        assert np.array_equal(spec.start[2:], [0.0, 0.0])
+    assert len({s.seed for s in corners}) == 3
+    randoms = tasks.episodes("random_goal", 40)
+    for spec in randoms:
+        assert any(np.array_equal(spec.goal, loc) for loc in locations)
+        start_cell = layout_cell(layout, *spec.start[:2])
+        assert start_cell != layout_cell(layout, *spec.goal)
+        assert list(start_cell) in layout["free_cells"]
+    # An episode is the same whatever the number drawn (its seed comes from its index).
+    again = tasks.episodes("random_goal", 5)
+    assert all(np.array_equal(a.start, b.start) for a, b in zip(again, randoms, strict=False))
+
+
+def test_bad_goals_and_task_names_are_user_errors(layout):
+    with pytest.raises(UserError, match="outside the maze"):
+        check_goal(layout, np.array([9.0, 0.0]))
+    with pytest.raises(UserError, match="inside a wall"):
+        check_goal(layout, np.array([0.0, 3.5]))  # cell (0, 4): the outer wall
+    with pytest.raises(UserError, match="unknown task 'fly'"):
+        MazeTasks(layout, np.zeros((1, 2))).episodes("fly", 1)
+    with pytest.raises(UserError, match="outside the maze"):
+        MazeTasks(layout, np.zeros((1, 2)), goal=np.array([0.0, -7.0]))
+
+
+def test_maze_batch_steps_exactly_like_gymnasium():
+    env = make_maze_env(ENV_ID, continuing_task=True, max_episode_steps=10**6)
+    env.reset(seed=0)
+    pe = env.unwrapped.point_env
+    start = np.array([-2.4, 2.3, 0.5, -0.2])
+    pe.set_state(start[:2], start[2:])
+    batch = MazeBatch(ENV_ID, None, 2)
+    batch.reset(1, start)
+    actions = np.random.default_rng(0).uniform(-1.5, 1.5, size=(300, 2))  # some beyond the clip
+    for a in actions:
+        obs = env.step(a)[0]["observation"]
+        assert np.array_equal(batch.step(1, a), obs)
+    assert np.array_equal(batch.state(0), np.zeros(4))  # other slots untouched
+    with pytest.raises(SimulationError, match="non-finite action"):
+        batch.step(0, np.array([np.nan, 0.0]))
+    assert isinstance(env, gym.Env)
+
+
+@pytest.fixture(scope="module")
+def small_model() -> SkillModel:
+    torch.manual_seed(0)
+    model = SkillModel(SkillModelConfig(4, 2, z_dim=3, hidden=16))
+    model.set_normalization([0.0, 0.0, 0.0, 0.0], [2.0, 2.0, 2.0, 2.0], [0.0, 0.0], [0.5, 0.5])
+    return model.eval()
+
+
+def _specs(n: int, layout) -> list[EpisodeSpec]:
+    return MazeTasks(layout, np.array([[1.5, -0.4]]), seed=0).episodes("random_goal", n)
+
+
+def test_a_failing_episode_ends_alone_and_others_are_unchanged(small_model, layout):
+    agent = SkillMPC(small_model, SkillPlanner(small_model, PlannerConfig(3, CEMConfig(8, 2, 2))))
+    run_cfg = RunConfig(max_steps=30, replan_every=10)
+    specs = _specs(3, layout)
+    clean, _ = run_episodes(agent, MazeBatch(ENV_ID, None, 3), specs, run_cfg)
+    # A fourth episode whose start velocity is NaN: its planning and simulation cannot go on.
+    bad = EpisodeSpec("random_goal", 99, np.array([0.5, 0.5, np.nan, 0.0]), specs[0].goal, 5)
+    mixed, calls = run_episodes(agent, MazeBatch(ENV_ID, None, 2), [*specs, bad], run_cfg)
+    assert [c.envs for c in calls][:2] == [2, 2]  # waves of two environments
+    assert mixed[3].error is not None and "non-finite" in mixed[3].error
+    for a, b in zip(clean, mixed[:3], strict=True):
+        assert a.error is None and b.error is None
+        assert a.steps == b.steps == 30
+        assert np.allclose(np.array(a.trace.states), np.array(b.trace.states), atol=1e-6)
+
+
+TINY = {
+    "ingest": {"name": "tiny", "episodes": 6, "episode_steps": 150, "seed": 1},
+    "segment": {"window": 11},
+    "train": {"z_dim": 4, "hidden": 32, "batch_size": 32, "max_steps": 30, "eval_every": 10},
+    "deploy": {
+        "tasks": ["random_goal", "corners"],
+        "episodes": 3,
+        "num_envs": 2,
+        "max_steps": 40,
+        "record_episodes": 2,
+        "planner": {"horizon": 3, "candidates": 16, "elites": 4, "iterations": 3},
+    },
+}
+
+
+@pytest.fixture(scope="module")
+def project(tmp_path_factory):
+    """Tiny real data, a tiny trained model and a deploy run, all through the real CLI."""
+    root = tmp_path_factory.mktemp("deploy")
+    (root / "params.yaml").write_text(yaml.safe_dump(TINY))
+    common = ["--params", str(root / "params.yaml"), "--data", str(root / "data")]
+    # One torch thread: on a loaded 2-core machine, 2 intra-op threads made this 20x slower.
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        for command in ("ingest", "segment", "train", "deploy"):
+            result = runner.invoke(app, [command, *common])
+            assert result.exit_code == 0, result.output
+    finally:
+        torch.set_num_threads(threads)
+    return root, common, result.output
+
+
+def test_deploy_writes_a_valid_report_and_prints_a_summary(project):
+    root, _, output = project
+    report = json.loads((root / "data/reports/deploy.json").read_text())
+    assert report["episodes"] == 6 and report["tasks"] == ["random_goal", "corners"]
+    for task in ("random_goal", "corners"):
+        t = report[task]
+        assert t["episodes"] == 3 and t["errors"] == 0
+        assert 0 <= t["success_ci95_low"] <= t["success_rate"] <= t["success_ci95_high"] <= 1
+        assert t["success_rate_r045"] <= t["success_rate"]
+        assert f"  {task}" in output
+    planning = report["planning"]
+    # Waves of 2 envs; replan every T = 10 steps (window 11) for 40 steps: 4 replans per wave.
+    assert report["replan_every"] == 10 and planning["calls"] >= 4
+    assert planning["call_latency_s"]["p50"] <= planning["call_latency_s"]["p95"]
+    rows = json.loads((root / "data/reports/deploy/episodes.json").read_text())
+    assert len(rows) == 6 and {r["task"] for r in rows} == {"random_goal", "corners"}
+    assert "recordings" in output and "95 % CI" in output
+
+
+def test_recordings_load_back_with_rerun(project):
+    root, _, _ = project
+    files = sorted((root / "data/recordings/deploy").glob("*.rrd"))
+    assert [f.stem for f in files] == [
+        "corners-0000", "corners-0001", "random_goal-0000", "random_goal-0001"
+    ]  # fmt: skip
+    rows = {r["task"] + str(r["episode"]): r for r in json.loads(
+        (root / "data/reports/deploy/episodes.json").read_text())}  # fmt: skip
+    reader = RrdReader(files[0])
+    assert [r.recording_id for r in reader.recordings()] == ["corners-0000"]
+    assert len(reader.blueprints()) == 1  # the default layout travels with the file
+    store = reader.store()
+    schema = store.schema()
+    entities = set(schema.entity_paths())
+    for entity in (
+        "/maze/walls", "/task/start", "/task/goal", "/agent/position", "/agent/path",
+        "/plan/states", "/metrics/distance_to_goal", "/metrics/plan_cost", "/metrics/action/fx",
+    ):  # fmt: skip
+        assert entity in entities, entity
+    assert {c.name for c in schema.index_columns()} >= {"step", "sim_time"}
+    # One distance per state s_0..s_n, one plan per replan.
+    chunks = list(store.stream())
+    distance_rows = sum(c.num_rows for c in chunks if c.entity_path == "/metrics/distance_to_goal")
+    plan_rows = sum(c.num_rows for c in chunks if c.entity_path == "/plan/states")
+    row = rows["corners0"]
+    assert distance_rows == row["steps"] + 1 and plan_rows == row["replans"]
+
+
+def test_view_lists_the_recordings(project):
+    root, _, _ = project
+    result = runner.invoke(app, ["view", str(root / "data/recordings/deploy"), "--dry-run"])
+    assert result.exit_code == 0 and result.output.count(".rrd") == 4
+    assert "-m rerun" in result.output
+
+
+def _one_line_error(result) -> str:
+    assert result.exit_code == 1, result.output
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), result.stderr
+    return lines[0]
+
+
+def test_bad_deploy_inputs_are_one_line_errors(project, tmp_path):
+    root, common, _ = project
+    line = _one_line_error(runner.invoke(app, ["deploy", *common, "-S", "deploy.tasks=[fly]"]))
+    assert "deploy.tasks" in line
+    args = ["deploy", *common, "-S", "deploy.tasks=[goal]", "-S", "deploy.goal=[9.0, 0.0]"]
+    assert "outside the maze" in _one_line_error(runner.invoke(app, args))
+    assert "no recordings" in _one_line_error(runner.invoke(app, ["view", str(tmp_path)]))
+    # A checkpoint whose states are not the maze's [x, y, vx, vy].
+    model, meta = load_model(root / "data/models/tiny")
+    wrong = SkillModel(SkillModelConfig(6, 2, z_dim=4, hidden=32))
+    data = tmp_path / "data"
+    save_model(wrong, data / "models/tiny", {k: v for k, v in meta.items() if k != "model"})
+    (data / "segments").mkdir(parents=True)
+    (data / "segments/tiny").symlink_to(root / "data/segments/tiny")
+    line = _one_line_error(
+        runner.invoke(app, ["deploy", "--params", str(root / "params.yaml"), "--data", str(data)])
+    )
+    assert "state_dim 6" in line

@@ -1,0 +1,169 @@
+"""The planner: CEM on known problems, batch independence, the goal cost, skill rollouts, MPC."""
+
+import numpy as np
+import pytest
+import torch
+
+from pipeline.errors import UserError
+from pipeline.model import SkillModel, SkillModelConfig
+from pipeline.planning import (
+    CEM,
+    CEMConfig,
+    GoalCost,
+    PlannerConfig,
+    SkillPlanner,
+    problem_generators,
+    rollout_skills,
+    shift_plan,
+)
+from pipeline.planning.mpc import SkillMPC
+
+CENTRES = torch.tensor([[[1.0, -2.0, 0.5], [0.0, 3.0, -1.0]], [[-4.0, 0.0, 2.0], [1.0, 1.0, 1.0]]])
+
+
+def quadratic(centres: torch.Tensor, calls: list | None = None):
+    """Cost sum((x - c_b)^2) of candidates `[A, K, 2, 3]` of problems `rows`."""
+
+    def cost(x: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+        if calls is not None:
+            calls.append(rows.tolist())
+        return (x - centres[rows][:, None]).pow(2).sum(dim=(-1, -2))
+
+    return cost
+
+
+def test_cem_finds_the_minimum_of_a_quadratic():
+    cem = CEM(CEMConfig(population=64, elites=8, iterations=40))
+    mean = torch.zeros(2, 2, 3)
+    result = cem.minimize(quadratic(CENTRES), mean, 2.0, problem_generators([0, 1], "cpu"))
+    assert torch.allclose(result.best, CENTRES, atol=0.05)
+    assert torch.allclose(result.mean, CENTRES, atol=0.05)
+    assert (result.cost < 0.01).all() and (result.iterations == 40).all()
+    # The returned cost is the returned candidate's.
+    assert torch.allclose(result.cost, (result.best - CENTRES).pow(2).sum(dim=(1, 2)))
+
+
+def test_cem_problems_planned_together_equal_planned_apart():
+    # Early stop: problem 0 starts at its optimum and stops after one iteration, problem 1 runs on.
+    centres = CENTRES.clone()
+    cfg = CEMConfig(population=32, elites=6, iterations=15, stop_cost=0.05)
+    mean = torch.stack([centres[0], torch.zeros(2, 3)])
+    std = torch.stack([torch.full((2, 3), 0.01), torch.ones(2, 3)])
+    calls: list = []
+    together = CEM(cfg).minimize(
+        quadratic(centres, calls), mean, std, problem_generators([7, 8], "cpu")
+    )
+    assert together.iterations[0] == 1 < together.iterations[1]
+    assert calls[1] == [1]  # a stopped problem costs no more evaluations
+    for b, seed in enumerate((7, 8)):
+        alone = CEM(cfg).minimize(
+            quadratic(centres[b : b + 1]), mean[b : b + 1], std[b : b + 1],
+            problem_generators([seed], "cpu"),
+        )  # fmt: skip
+        assert torch.equal(alone.best[0], together.best[b])
+        assert torch.equal(alone.cost[0], together.cost[b])
+        assert alone.iterations[0] == together.iterations[b]
+
+
+def test_cem_ignores_nan_costs_and_rejects_bad_settings():
+    def cost(x, rows):
+        c = x.pow(2).sum(-1)
+        return torch.where(x[..., 0] > 0, torch.nan, c)  # NaN on half of the space
+
+    result = CEM(CEMConfig(32, 4, 10)).minimize(
+        cost, torch.zeros(1, 2), 1.0, problem_generators([0], "cpu")
+    )
+    assert torch.isfinite(result.cost).all() and result.best[0, 0] <= 0
+    with pytest.raises(UserError, match="elites"):
+        CEMConfig(population=10, elites=11)
+
+
+def test_goal_cost_is_the_distance_of_the_nearest_predicted_state():
+    # One problem, two candidates, L = 3 predicted states after s_0; goal at (1, 1).
+    states = torch.zeros(1, 2, 4, 4)
+    states[0, 0, :, :2] = torch.tensor([[1.0, 1.0], [4.0, 5.0], [1.0, 3.0], [7.0, 1.0]])
+    states[0, 1, :, :2] = torch.tensor([[9.0, 9.0], [1.0, 1.5], [5.0, 5.0], [1.0, 1.0]])
+    cost = GoalCost(torch.tensor([[1.0, 1.0]]))(states, torch.tensor([0]))
+    # Candidate 0: s_0 is at the goal but is not a prediction; nearest predicted is 2.0 away.
+    # Candidate 1: the last state reaches the goal exactly.
+    assert torch.allclose(cost, torch.tensor([[2.0, 0.0]]))
+
+
+@pytest.fixture(scope="module")
+def model() -> SkillModel:
+    """A small skill model with random weights and non-trivial normalization."""
+    torch.manual_seed(0)
+    m = SkillModel(SkillModelConfig(4, 2, z_dim=3, hidden=16))
+    m.set_normalization([0.5, -0.5, 0.0, 0.0], [2.0, 2.0, 1.0, 1.0], [0.0, 0.0], [0.5, 0.5])
+    return m.eval()
+
+
+def test_rollout_chains_prior_and_tawm_means(model):
+    s0 = torch.randn(2, 4)
+    eps = torch.randn(2, 5, 3, 3)
+    states, z = rollout_skills(model, s0, eps)
+    assert states.shape == (2, 5, 4, 4) and z.shape == (2, 5, 3, 3)
+    a, k = 1, 3  # one candidate by hand: z_i = mu(s_i) + sigma(s_i) eps_i, s_i+1 = TAWM mean
+    s = s0[a]
+    for i in range(3):
+        mean, std = model.skill_prior(s)
+        zi = mean + std * eps[a, k, i]
+        assert torch.allclose(z[a, k, i], zi, atol=1e-6)
+        s = model.predict_end(s, zi)[0]
+        assert torch.allclose(states[a, k, i + 1], s, atol=1e-5)
+    assert torch.equal(states[:, :, 0], s0[:, None].expand(2, 5, 4))
+
+
+def test_batched_planning_matches_planning_each_env_alone(model):
+    planner = SkillPlanner(model, PlannerConfig(horizon=3, cem=CEMConfig(24, 6, 5)))
+    s0, goals = torch.randn(3, 4), torch.randn(3, 2)
+    seeds = [11, 12, 13]
+    together = planner.plan(s0, GoalCost(goals), problem_generators(seeds, "cpu"))
+    for b in range(3):
+        alone = planner.plan(
+            s0[b : b + 1], GoalCost(goals[b : b + 1]), problem_generators(seeds[b : b + 1], "cpu")
+        )
+        assert torch.allclose(alone.eps[0], together.eps[b], atol=1e-5)
+        assert torch.allclose(alone.states[0], together.states[b], atol=1e-5)
+        assert torch.allclose(alone.cost[0], together.cost[b], atol=1e-5)
+    # The plan's states are the TAWM rollout of its skills, starting at s_0.
+    assert torch.equal(together.states[:, 0], s0)
+    assert together.z.shape == (3, 3, 3)
+
+
+def test_the_prior_penalty_keeps_plans_near_the_prior_mean(model):
+    s0, goals = torch.randn(4, 4), 5 + torch.randn(4, 2)
+    plans = {}
+    for weight in (0.0, 100.0):
+        config = PlannerConfig(horizon=3, cem=CEMConfig(32, 8, 5), prior_weight=weight)
+        plans[weight] = SkillPlanner(model, config).plan(
+            s0, GoalCost(goals), problem_generators(range(4), "cpu")
+        )
+    assert plans[100.0].eps.pow(2).mean() < 0.5 * plans[0.0].eps.pow(2).mean()
+    # `cost` is the task cost of the returned plan; `objective` adds the penalty.
+    for weight, plan in plans.items():
+        task = GoalCost(goals)(plan.states[:, None], torch.arange(4))[:, 0]
+        assert torch.allclose(plan.cost, task, atol=1e-5)
+        penalty = weight * plan.eps.pow(2).mean(dim=(1, 2))
+        assert torch.allclose(plan.objective, task + penalty, atol=1e-4)
+
+
+def test_mpc_warm_starts_from_the_shifted_plan_and_acts_with_the_policy(model):
+    planner = SkillPlanner(model, PlannerConfig(horizon=3, cem=CEMConfig(16, 4, 3)))
+    agent = SkillMPC(model, planner)
+    agent.reset(np.zeros((2, 2)), seeds=[1, 2])
+    states = np.random.default_rng(0).normal(size=(2, 4))
+    first = agent.replan(np.array([0, 1]), states)
+    expected = model.act(torch.as_tensor(states[1:], dtype=torch.float32), first.z[1:, 0])
+    assert np.allclose(agent.act(np.array([1]), states[1:]), expected.numpy(), atol=1e-6)
+    assert torch.equal(shift_plan(first.eps)[:, :2], first.eps[:, 1:])
+    assert torch.equal(shift_plan(first.eps)[:, 2], torch.zeros(2, 3))
+    # Sampled actions differ from the mean, reproducibly per episode seed.
+    sampler = SkillMPC(model, planner, sample_actions=True)
+    draws = []
+    for _ in range(2):
+        sampler.reset(np.zeros((2, 2)), seeds=[1, 2])
+        sampler.replan(np.array([0, 1]), states)
+        draws.append(sampler.act(np.array([0, 1]), states))
+    assert np.array_equal(draws[0], draws[1])
+    assert not np.allclose(draws[0], agent.act(np.array([0, 1]), states))
