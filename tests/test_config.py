@@ -14,12 +14,13 @@ def _write(tmp_path, text):
     return path
 
 
-def test_repository_params_yaml_is_valid_and_complete():
-    params = load_params(ROOT / "params.yaml")
-    # Every field is spelled out in params.yaml: dvc.yaml templates and `dvc exp run -S` need them.
+@pytest.mark.parametrize("name", ["params.yaml", "params-paper.yaml"])
+def test_repository_params_files_are_valid_and_complete(name):
+    params = load_params(ROOT / name)
+    # Every field is spelled out: dvc.yaml templates and `dvc exp run -S` need them.
     import yaml
 
-    raw = yaml.safe_load((ROOT / "params.yaml").read_text())
+    raw = yaml.safe_load((ROOT / name).read_text())
 
     def keys(d, prefix=""):
         out = set()
@@ -72,3 +73,9 @@ def test_missing_and_malformed_files(tmp_path):
 
 def test_defaults_match_the_paper_window():
     assert Params().segment.window == 40
+
+
+def test_paper_params_hold_the_papers_tables():
+    paper = load_params(ROOT / "params-paper.yaml")
+    assert (paper.train.z_dim, paper.train.hidden, paper.train.batch_size) == (256, 256, 100)
+    assert paper.train.lr_e == paper.train.lr_m == 5e-5 and paper.segment.window == 40
