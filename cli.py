@@ -356,16 +356,13 @@ def bench_train(
 
     Needs the segments (`oposm segment`). Compare configs with -p params-paper.yaml.
     """
-    import torch
-
+    from pipeline.devices import resolve_device
     from pipeline.paths import Paths
     from pipeline.segments import load_segments
     from pipeline.training.bench import bench_train as run
 
     p = _load(params, set_)
-    device = torch.device(
-        "cuda" if torch.cuda.is_available() and p.train.device != "cpu" else "cpu"
-    )
+    device = resolve_device(p.train.device, "train.device")
     segments = load_segments(Paths(data).segments(p.ingest.name))
     typer.echo(f"device {device}, method {p.train.method}, z {p.train.z_dim}, h {p.train.hidden}")
     for name, value in run(p.train, segments, steps, device).items():

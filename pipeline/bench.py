@@ -199,16 +199,17 @@ def bench_plan(
     """
     import torch
 
+    from pipeline.devices import resolve_device
     from pipeline.evaluation.tasks import train_locations
     from pipeline.model import load_model
     from pipeline.planning import CEMConfig, PlannerConfig, SkillPlanner
     from pipeline.segments import load_segments
-    from stages.deploy import planner_config, resolve_device
+    from stages.deploy import planner_config
 
     cfg, name = params.deploy, params.ingest.name
     if cfg.threads is not None:
         torch.set_num_threads(cfg.threads)
-    device = resolve_device(cfg.device)
+    device = resolve_device(cfg.device, "deploy.device")
     model, _ = load_model(paths.model(name), device=device)
     locations = train_locations(load_segments(paths.segments(name)))
     rng = np.random.default_rng(cfg.seed)

@@ -17,6 +17,7 @@ import torch
 from tqdm import tqdm
 
 from pipeline.config import DeployParams, Params, PlannerParams
+from pipeline.devices import resolve_device, torch_threads
 from pipeline.envs.maze import SUPPORTED_ENVS, max_episode_steps
 from pipeline.errors import UserError
 from pipeline.evaluation.episodes import EpisodeResult, PlanCall, RunConfig, run_episodes
@@ -46,15 +47,6 @@ def planner_config(p: PlannerParams) -> PlannerConfig:
         prior_weight=p.prior_weight,
         warm_start=p.warm_start,
     )
-
-
-def resolve_device(device: str) -> torch.device:
-    """auto -> CUDA when available, else CPU; an explicit cuda without a GPU is an error."""
-    if device == "cuda" and not torch.cuda.is_available():
-        raise UserError("deploy.device is cuda but no CUDA GPU is available; use auto or cpu")
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(device)
 
 
 def check_model_env(model: SkillModel, meta: dict[str, Any], directory: str) -> tuple[str, Any]:
@@ -89,20 +81,15 @@ def run(params: Params, paths: Paths, progress: bool = True) -> dict[str, Any]:
     """Deploy the trained model on `deploy.tasks`; write the report and recordings; return the
     report. Uses `deploy.threads` torch threads while it runs (one by default: the batches are
     small, and intra-op threads that wait on a busy core cost more than they give)."""
-    threads = torch.get_num_threads()
-    if params.deploy.threads is not None:
-        torch.set_num_threads(params.deploy.threads)
-    try:
+    with torch_threads(params.deploy.threads):
         return _run(params, paths, progress)
-    finally:
-        torch.set_num_threads(threads)
 
 
 def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
     cfg, name = params.deploy, params.ingest.name
     for task in cfg.tasks:
         check_task(task)
-    device = resolve_device(cfg.device)
+    device = resolve_device(cfg.device, "deploy.device")
     model_dir = paths.model(name)
     model, meta = load_model(model_dir, device=device)
     env_id, maze_map = check_model_env(model, meta, str(model_dir))

@@ -7,16 +7,12 @@ low-level planner can reuse it. Writes `data/models/<name>-dynamics/` and
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import logging
-from collections.abc import Iterator
 from pathlib import Path
 
-import torch
-
 from pipeline.config import Params
-from pipeline.errors import UserError
+from pipeline.devices import resolve_device, torch_threads
 from pipeline.io import write_json
 from pipeline.model.dynamics import DynamicsConfig, FitConfig, fit_dynamics, save_dynamics
 from pipeline.paths import Paths
@@ -28,32 +24,6 @@ log = logging.getLogger(__name__)
 def dynamics_dir(paths: Paths, name: str) -> Path:
     """`data/models/<name>-dynamics/`: beside the skill model, outside its (persisted) DVC out."""
     return paths.model(f"{name}-dynamics")
-
-
-def resolve_device(device: str, key: str) -> torch.device:
-    """`auto` -> CUDA when available, else CPU; `cuda` without a GPU is a `UserError`."""
-    if device == "cuda" and not torch.cuda.is_available():
-        raise UserError(f"{key} is cuda but no CUDA GPU is available; use auto or cpu")
-    if device == "auto":
-        device = "cuda" if torch.cuda.is_available() else "cpu"
-    return torch.device(device)
-
-
-@contextlib.contextmanager
-def single_thread(device: torch.device) -> Iterator[None]:
-    """Run torch on one intra-op thread on CPU for a while (restored afterwards).
-
-    Our CPU work is small MLPs on small batches: with 2 threads on 2 cores shared with other
-    jobs, torch's threads wait on each other (measured: 1000 dynamics steps 10.4 s with 2
-    threads, 4.7 s with 1, at load 2.9; an unlucky EM run went from ~6 steps/s to 15 s/step).
-    """
-    previous = torch.get_num_threads()
-    if device.type == "cpu":
-        torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(previous)
 
 
 def run(params: Params, paths: Paths) -> dict[str, float]:
@@ -68,7 +38,7 @@ def run(params: Params, paths: Paths) -> dict[str, float]:
         min_std=cfg.min_std,
     )
     fit = FitConfig(**cfg.model_dump(exclude={"hidden", "min_std", "device"}))
-    with single_thread(device):
+    with torch_threads(1 if device.type == "cpu" else None):
         model, metrics = fit_dynamics(segments, model_config, fit, device)
     extra = {"dataset": segments.info.name, "info": dataclasses.asdict(segments.info)}
     save_dynamics(model, dynamics_dir(paths, name), extra | {"metrics": metrics})

@@ -16,6 +16,7 @@ from pathlib import Path
 import torch
 
 from pipeline.config import Params, TrainParams
+from pipeline.devices import resolve_device
 from pipeline.errors import UserError
 from pipeline.model import SkillModel, SkillModelConfig, save_model
 from pipeline.model.checkpoint import CONFIG_FILE, WEIGHTS_FILE
@@ -56,9 +57,7 @@ def _fingerprint(cfg: TrainParams, segments_dir: Path, world_size: int) -> str:
 def _accelerator(device: str):
     from accelerate import Accelerator
 
-    if device == "cuda" and not torch.cuda.is_available():
-        raise UserError("train.device is cuda but no CUDA GPU is available; use auto or cpu")
-    return Accelerator(cpu=device == "cpu")
+    return Accelerator(cpu=resolve_device(device, "train.device").type == "cpu")
 
 
 def _grad_reducer(accelerator):

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.config import Params
+from pipeline.devices import resolve_device, torch_threads
 from pipeline.envs.maze import SUPPORTED_ENVS, make_maze_env, maze_layout
 from pipeline.errors import UserError
 from pipeline.evaluation.validate import (
@@ -29,7 +30,7 @@ from pipeline.model import load_model
 from pipeline.model.dynamics import load_dynamics
 from pipeline.paths import Paths
 from pipeline.segments import load_segments
-from stages.dynamics import dynamics_dir, resolve_device, single_thread
+from stages.dynamics import dynamics_dir
 
 log = logging.getLogger(__name__)
 
@@ -66,7 +67,7 @@ def run(params: Params, paths: Paths) -> dict[str, Any]:
 
     horizon = int(meta["window"]) - 1
     vcfg = ValidationConfig(**cfg.model_dump(exclude={"record_starts", "device"}))
-    with single_thread(device):
+    with torch_threads(1 if device.type == "cpu" else None):
         result = run_validation(model, dynamics, segments, horizon, vcfg, device)
     layout = maze_layout(make_maze_env(info.env_id, **info.env_kwargs))
     norm = (model.state_mean.cpu().numpy(), model.state_std.cpu().numpy())
