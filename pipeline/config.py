@@ -7,7 +7,6 @@ that names the key instead of a silently ignored setting.
 from __future__ import annotations
 
 import dataclasses
-import warnings
 from pathlib import Path
 from typing import Any, Literal
 
@@ -89,7 +88,7 @@ class IngestParams(_Section):
     env_id: Literal[tuple(SUPPORTED_ENVS)] = Field(  # type: ignore[valid-type]
         "PointMaze_Medium-v3", description="Gymnasium-robotics maze the expert drives in."
     )
-    episodes: int = Field(100, ge=1, description="Number of episodes to record.")
+    episodes: int = Field(200, ge=1, description="Number of episodes to record.")
     episode_steps: int = Field(1000, ge=2, description="Steps per episode.")
     seed: int = Field(0, description="Seed of the expert, the noise and the start state.")
     expert: ExpertConfig = Field(
@@ -141,14 +140,14 @@ class TrainParams(_Section):
     )
     min_std: float = Field(1e-4, gt=0, description="Floor added to every predicted std.")
     batch_size: int = Field(100, ge=1, description="Windows per update step (paper: 100).")
-    lr_e: float = Field(5e-4, gt=0, description="Adam learning rate of the E-step (paper: 5e-5).")
+    lr_e: float = Field(2.5e-4, gt=0, description="Adam learning rate of the E-step (paper: 5e-5).")
     lr_m: float = Field(
-        5e-4, gt=0, description="Adam learning rate of the M-step and of vi (paper: 5e-5)."
+        2.5e-4, gt=0, description="Adam learning rate of the M-step and of vi (paper: 5e-5)."
     )
     grad_clip: float | None = Field(
         None, gt=0, description="Clip each step's gradient norm to this; null: no clipping."
     )
-    max_steps: int = Field(3000, ge=1, description="Update steps (E+M pairs) in total.")
+    max_steps: int = Field(5000, ge=1, description="Update steps (E+M pairs) in total.")
     max_minutes: float | None = Field(
         None, gt=0, description="Wall-clock budget in minutes over resumed runs; null: none."
     )
@@ -175,11 +174,6 @@ class DynamicsParams(_Section):
     device: Literal["auto", "cpu", "cuda"] = Field(
         "auto", description="auto: CUDA when available, else CPU."
     )
-
-
-# `Params.validate` (the section) shadows pydantic's deprecated `BaseModel.validate` classmethod,
-# which nothing here uses (`model_validate` replaces it); the section name matches the stage's.
-warnings.filterwarnings("ignore", 'Field name "validate" in "Params" shadows', UserWarning)
 
 
 class ValidateParams(_Section):
@@ -263,13 +257,25 @@ class DeployParams(_Section):
 
 
 class Params(_Section):
-    """All of `params.yaml`."""
+    """All of `params.yaml`, one field per stage.
+
+    The `validate` section is the attribute `validation`: a field named `validate` would shadow
+    pydantic's `BaseModel.validate`. Files, overrides, dumps and messages use the section's name.
+    """
+
+    model_config = ConfigDict(
+        extra="forbid",
+        validate_assignment=True,
+        validate_by_name=True,
+        validate_by_alias=True,
+        serialize_by_alias=True,
+    )
 
     ingest: IngestParams = Field(default_factory=IngestParams)
     segment: SegmentParams = Field(default_factory=SegmentParams)
     train: TrainParams = Field(default_factory=TrainParams)
     dynamics: DynamicsParams = Field(default_factory=DynamicsParams)
-    validate: ValidateParams = Field(default_factory=ValidateParams)
+    validation: ValidateParams = Field(default_factory=ValidateParams, alias="validate")
     deploy: DeployParams = Field(default_factory=DeployParams)
 
 
@@ -285,17 +291,22 @@ def _format_validation_error(err: ValidationError, source: str) -> str:
     return f"{source}: bad value for '{key}': {expected}, got {got!r}{more}"
 
 
+def _keys(model: type[BaseModel]) -> dict[str, Any]:
+    """Params-file key (the alias, if any) -> field of a section."""
+    return {field.alias or name: field for name, field in model.model_fields.items()}
+
+
 def _section_keys(loc: tuple) -> list[str]:
-    """Field names of the (nested) section at `loc`, for error messages."""
+    """Keys of the (nested) section at `loc`, for error messages."""
     model: type = Params
     for part in loc:
-        field = model.model_fields.get(str(part)) if issubclass(model, BaseModel) else None
+        field = _keys(model).get(str(part)) if issubclass(model, BaseModel) else None
         if field is None or not isinstance(field.annotation, type):
             break
         model = field.annotation
     if dataclasses.is_dataclass(model):
         return [f.name for f in dataclasses.fields(model)]
-    return list(model.model_fields) if issubclass(model, BaseModel) else []
+    return list(_keys(model)) if issubclass(model, BaseModel) else []
 
 
 def parse_override(text: str) -> tuple[list[str], Any]:
@@ -334,6 +345,15 @@ def _deep_copy(raw: dict[str, Any]) -> dict[str, Any]:
     return {k: _deep_copy(v) if isinstance(v, dict) else v for k, v in raw.items()}
 
 
+def _yaml_problem(exc: yaml.YAMLError) -> str:
+    """'line L, column C: problem' of a YAML error (PyYAML's own text spans several lines)."""
+    mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
+    problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+    if mark is None:
+        return problem
+    return f"line {mark.line + 1}, column {mark.column + 1}: {problem}"
+
+
 def load_params(path: str | Path = "params.yaml", overrides: list[str] | None = None) -> Params:
     """Load and validate `params.yaml`, applying `section.key=value` overrides for this run.
 
@@ -346,7 +366,7 @@ def load_params(path: str | Path = "params.yaml", overrides: list[str] | None = 
     try:
         raw = yaml.safe_load(path.read_text()) or {}
     except yaml.YAMLError as exc:
-        raise UserError(f"{path} is not valid YAML: {str(exc).splitlines()[0]}") from exc
+        raise UserError(f"{path} is not valid YAML: {_yaml_problem(exc)}") from exc
     if not isinstance(raw, dict):
         raise UserError(f"{path} must be a mapping of sections (ingest:, segment:, ...)")
     raw = apply_overrides(raw, overrides or [])

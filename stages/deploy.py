@@ -18,14 +18,15 @@ from tqdm import tqdm
 
 from pipeline.config import DeployParams, Params, PlannerParams
 from pipeline.devices import resolve_device, torch_threads
-from pipeline.envs.maze import SUPPORTED_ENVS, max_episode_steps
+from pipeline.envs.batch import BatchSim
+from pipeline.envs.spec import make_env_spec
 from pipeline.errors import UserError
+from pipeline.evaluation.compat import check_model_dims, check_same_environment
 from pipeline.evaluation.episodes import EpisodeResult, PlanCall, RunConfig, run_episodes
-from pipeline.evaluation.maze_batch import MazeBatch
 from pipeline.evaluation.stats import latency_summary, task_summary
 from pipeline.evaluation.tasks import MazeTasks, check_task, train_locations
 from pipeline.io import atomic_dir, write_json
-from pipeline.model import SkillModel, load_model
+from pipeline.model import load_model
 from pipeline.paths import Paths
 from pipeline.planning import CEMConfig, PlannerConfig, SkillPlanner
 from pipeline.planning.mpc import SkillMPC
@@ -33,9 +34,6 @@ from pipeline.segments import load_segments
 from pipeline.viz.deploy import recording_name, write_episode_recording
 
 log = logging.getLogger(__name__)
-
-# PointMaze observations: [x, y, vx, vy].
-MAZE_STATE_DIM = 4
 
 
 def planner_config(p: PlannerParams) -> PlannerConfig:
@@ -49,31 +47,13 @@ def planner_config(p: PlannerParams) -> PlannerConfig:
     )
 
 
-def check_model_env(model: SkillModel, meta: dict[str, Any], directory: str) -> tuple[str, Any]:
-    """The env id and maze map the checkpoint was trained on; errors if deploy cannot run there."""
-    info = meta.get("info") or {}
-    env_id = info.get("env_id", "")
-    if env_id not in SUPPORTED_ENVS:
-        raise UserError(
-            f"the model in {directory} was trained on data from env {env_id!r}; deploy runs "
-            f"PointMaze only ({', '.join(SUPPORTED_ENVS)})"
-        )
-    if model.config.state_dim != MAZE_STATE_DIM:
-        raise UserError(
-            f"the model in {directory} has state_dim {model.config.state_dim}, but {env_id} "
-            f"states have {MAZE_STATE_DIM} ([x, y, vx, vy]); retrain on this env's observations"
-        )
-    return env_id, (info.get("env_kwargs") or {}).get("maze_map")
-
-
 def _record(
-    results: list[EpisodeResult], cfg: DeployParams, envs: MazeBatch, directory: Path, radius: float
+    results: list[EpisodeResult], cfg: DeployParams, envs: BatchSim, directory: Path, radius: float
 ) -> int:
     """Write the recordings of the episodes numbered below `deploy.record_episodes`."""
     chosen = [r for r in results if r.spec.index < cfg.record_episodes]
     for r in chosen:
-        path = directory / f"{recording_name(r)}.rrd"
-        write_episode_recording(path, r, envs.layout, envs.dt, radius)
+        write_episode_recording(directory / f"{recording_name(r)}.rrd", r, envs.spec, radius)
     return len(chosen)
 
 
@@ -92,22 +72,29 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
     device = resolve_device(cfg.device, "deploy.device")
     model_dir = paths.model(name)
     model, meta = load_model(model_dir, device=device)
-    env_id, maze_map = check_model_env(model, meta, str(model_dir))
     segments = load_segments(paths.segments(name))
-    if segments.info.name != meta.get("dataset"):
+    info = segments.info
+    check_same_environment(info, meta, f"the model in {model_dir}")
+    if info.name != meta.get("dataset"):
         raise UserError(
-            f"{paths.segments(name)} holds dataset '{segments.info.name}' but the model was "
+            f"{paths.segments(name)} holds dataset '{info.name}' but the model was "
             f"trained on '{meta.get('dataset')}'; re-run `oposm train`"
         )
+    spec = make_env_spec(info.env_id, info.env_kwargs)
+    check_model_dims(
+        model.config.state_dim, model.config.action_dim, spec, f"the model in {model_dir}"
+    )
 
     started = time.perf_counter()
-    envs = MazeBatch(env_id, maze_map, min(cfg.num_envs, cfg.episodes))
+    envs = BatchSim(spec, min(cfg.num_envs, cfg.episodes))
     goal = None if cfg.goal is None else np.asarray(cfg.goal, dtype=np.float64)
-    tasks = MazeTasks(envs.layout, train_locations(segments), cfg.start_noise, goal, cfg.seed)
+    locations = train_locations(segments, spec.goal_dims)
+    tasks = MazeTasks(spec.layout, locations, cfg.start_noise, goal, cfg.seed)
     specs = {task: tasks.episodes(task, cfg.episodes) for task in cfg.tasks}  # checks first
-    agent = SkillMPC(model, SkillPlanner(model, planner_config(cfg.planner)), cfg.sample_actions)
+    planner = SkillPlanner(model, planner_config(cfg.planner))
+    agent = SkillMPC(model, planner, cfg.sample_actions, spec.goal_dims)
     run_cfg = RunConfig(
-        max_steps=cfg.max_steps or max_episode_steps(env_id),
+        max_steps=cfg.max_steps or spec.max_episode_steps,
         replan_every=cfg.replan_every or int(meta["window"]) - 1,
         success_radius=cfg.success_radius,
     )
@@ -132,7 +119,7 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
 
     report: dict[str, Any] = {
         "dataset": name,
-        "env_id": env_id,
+        "env_id": spec.env_id,
         "model_step": meta.get("step"),
         "device": str(device),
         "torch_threads": torch.get_num_threads(),
@@ -141,7 +128,7 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
         "success_radius": run_cfg.success_radius,
         "max_steps": run_cfg.max_steps,
         "replan_every": run_cfg.replan_every,
-        **{task: task_summary(r, envs.dt) for task, r in results.items()},
+        **{task: task_summary(r, spec.dt) for task, r in results.items()},
         "planning": latency_summary(calls),
         "wall_s": time.perf_counter() - started,
         "recordings": str(recordings),

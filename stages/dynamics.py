@@ -14,9 +14,10 @@ from pathlib import Path
 from pipeline.config import Params
 from pipeline.devices import resolve_device, torch_threads
 from pipeline.io import write_json
-from pipeline.model.dynamics import DynamicsConfig, FitConfig, fit_dynamics, save_dynamics
+from pipeline.model.checkpoint import save_dynamics
 from pipeline.paths import Paths
 from pipeline.segments import load_segments
+from pipeline.training.dynamics import fit_dynamics
 
 log = logging.getLogger(__name__)
 
@@ -31,15 +32,8 @@ def run(params: Params, paths: Paths) -> dict[str, float]:
     cfg, name = params.dynamics, params.ingest.name
     segments = load_segments(paths.segments(name))
     device = resolve_device(cfg.device, "dynamics.device")
-    model_config = DynamicsConfig(
-        state_dim=segments.info.state_dim,
-        action_dim=segments.info.action_dim,
-        hidden=cfg.hidden,
-        min_std=cfg.min_std,
-    )
-    fit = FitConfig(**cfg.model_dump(exclude={"hidden", "min_std", "device"}))
     with torch_threads(1 if device.type == "cpu" else None):
-        model, metrics = fit_dynamics(segments, model_config, fit, device)
+        model, metrics = fit_dynamics(segments, cfg, device)
     extra = {"dataset": segments.info.name, "info": dataclasses.asdict(segments.info)}
     save_dynamics(model, dynamics_dir(paths, name), extra | {"metrics": metrics})
     write_json(paths.report("dynamics"), metrics | {"device": str(device)})

@@ -15,19 +15,12 @@ from typing import Any
 
 from pipeline.config import Params
 from pipeline.devices import resolve_device, torch_threads
-from pipeline.envs.maze import SUPPORTED_ENVS, make_maze_env, maze_layout
-from pipeline.errors import UserError
-from pipeline.evaluation.validate import (
-    ValidationConfig,
-    check_same_environment,
-    end_position_table,
-    error_table,
-    run_validation,
-    validation_metrics,
-)
+from pipeline.envs.spec import make_env_spec
+from pipeline.evaluation.compat import check_same_environment
+from pipeline.evaluation.open_loop import run_open_loop
+from pipeline.evaluation.open_loop_metrics import end_position_table, error_table, open_loop_report
 from pipeline.io import atomic_path, write_json
-from pipeline.model import load_model
-from pipeline.model.dynamics import load_dynamics
+from pipeline.model.checkpoint import load_dynamics, load_model
 from pipeline.paths import Paths
 from pipeline.segments import load_segments
 from stages.dynamics import dynamics_dir
@@ -51,14 +44,10 @@ def write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
 def run(params: Params, paths: Paths) -> dict[str, Any]:
     """Run the validation of `data/models/<name>/` on `data/segments/<name>/`; return the report."""
     started = time.monotonic()
-    cfg, name = params.validate, params.ingest.name
+    cfg, name = params.validation, params.ingest.name
     segments = load_segments(paths.segments(name))
     info = segments.info
-    if info.env_id not in SUPPORTED_ENVS:
-        raise UserError(
-            f"dataset '{info.name}' has no simulatable environment (env_id {info.env_id!r}); "
-            f"validate needs one of {', '.join(SUPPORTED_ENVS)}"
-        )
+    spec = make_env_spec(info.env_id, info.env_kwargs)
     device = resolve_device(cfg.device, "validate.device")
     model, meta = load_model(paths.model(name), device=device)
     dynamics, dyn_meta = load_dynamics(dynamics_dir(paths, name), device=device)
@@ -66,27 +55,18 @@ def run(params: Params, paths: Paths) -> dict[str, Any]:
     check_same_environment(info, dyn_meta, f"the dynamics model in {dynamics_dir(paths, name)}")
 
     horizon = int(meta["window"]) - 1
-    vcfg = ValidationConfig(**cfg.model_dump(exclude={"record_starts", "device"}))
     with torch_threads(1 if device.type == "cpu" else None):
-        result = run_validation(model, dynamics, segments, horizon, vcfg, device)
-    layout = maze_layout(make_maze_env(info.env_id, **info.env_kwargs))
+        result = run_open_loop(model, dynamics, segments, spec, horizon, cfg, device)
     norm = (model.state_mean.cpu().numpy(), model.state_std.cpu().numpy())
-    report = validation_metrics(result, info.state_names, norm, layout)
+    report = open_loop_report(result, spec, info.state_names, norm)
 
     plots = paths.live("validate")
     write_csv(plots / "error_vs_horizon.csv", error_table(report))
-    write_csv(plots / "end_positions.csv", end_position_table(result, info.state_names))
+    write_csv(plots / "end_positions.csv", end_position_table(result, list(spec.goal_dims)))
     if cfg.record_starts:
         from pipeline.viz.validate import write_recording
 
-        write_recording(
-            recording_path(paths),
-            result,
-            layout,
-            info.state_names,
-            info.control_period,
-            cfg.record_starts,
-        )
+        write_recording(recording_path(paths), result, spec, cfg.record_starts)
     report["timing"]["total_s"] = time.monotonic() - started
     write_json(paths.report("validate"), report)
     _log(report)

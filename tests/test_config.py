@@ -33,6 +33,25 @@ def test_repository_params_files_are_valid_and_complete(name):
     assert keys(raw) == keys(params.model_dump())
 
 
+def test_params_yaml_holds_exactly_the_config_defaults():
+    """The config classes are the single source of defaults: deleting a key from params.yaml must
+    not change a run, so every value there equals the class default (and no key is missing)."""
+    import yaml
+
+    assert yaml.safe_load((ROOT / "params.yaml").read_text()) == Params().model_dump(mode="json")
+
+
+def test_validate_section_keeps_its_name_without_shadowing_pydantic(tmp_path):
+    params = load_params(_write(tmp_path, "validate:\n  starts: 7\n"), ["validate.skills=2"])
+    assert (params.validation.starts, params.validation.skills) == (7, 2)
+    assert params.model_dump()["validate"]["starts"] == 7
+    assert "validate" not in Params.model_fields  # a field of that name shadows BaseModel.validate
+    with pytest.raises(UserError, match=r"unknown key 'validate\.startz'.*particles"):
+        load_params(_write(tmp_path, "validate:\n  startz: 3\n"))
+    with pytest.raises(UserError, match="valid keys here: .*dynamics, validate, deploy"):
+        load_params(_write(tmp_path, "valdate: {}\n"))
+
+
 def test_unknown_key_names_the_key_and_the_valid_ones(tmp_path):
     with pytest.raises(UserError, match=r"unknown key 'ingest\.expert\.pgain'.*p_gain"):
         load_params(_write(tmp_path, "ingest:\n  expert:\n    pgain: 3\n"))
@@ -69,6 +88,9 @@ def test_missing_and_malformed_files(tmp_path):
         load_params(tmp_path / "nope.yaml")
     with pytest.raises(UserError, match="not valid YAML"):
         load_params(_write(tmp_path, "ingest: [\n"))
+    text = "ingest:\n  episodes: 3\n seed: 1\n"  # line 3: bad indentation
+    with pytest.raises(UserError, match=r"not valid YAML: line 3, column 2: expected <block end>"):
+        load_params(_write(tmp_path, text))
 
 
 def test_defaults_match_the_paper_window():

@@ -12,11 +12,10 @@ from rerun.chunk import RrdReader
 from typer.testing import CliRunner
 
 from cli import app
-from pipeline.envs import make_maze_env, maze_layout
+from pipeline.envs import BatchSim, PointMazeSpec, make_maze_env
 from pipeline.envs.maze import layout_cell
 from pipeline.errors import UserError
 from pipeline.evaluation.episodes import RunConfig, run_episodes
-from pipeline.evaluation.maze_batch import MazeBatch, SimulationError
 from pipeline.evaluation.stats import wilson_interval
 from pipeline.evaluation.tasks import EpisodeSpec, MazeTasks, check_goal
 from pipeline.model import SkillModel, SkillModelConfig, load_model, save_model
@@ -28,8 +27,13 @@ runner = CliRunner()
 
 
 @pytest.fixture(scope="module")
-def layout():
-    return maze_layout(make_maze_env(ENV_ID))
+def spec():
+    return PointMazeSpec.create(ENV_ID)
+
+
+@pytest.fixture(scope="module")
+def layout(spec):
+    return spec.layout
 
 
 def test_wilson_interval_known_values():
@@ -71,21 +75,29 @@ def test_bad_goals_and_task_names_are_user_errors(layout):
         MazeTasks(layout, np.zeros((1, 2)), goal=np.array([0.0, -7.0]))
 
 
-def test_maze_batch_steps_exactly_like_gymnasium():
+def test_batch_sim_steps_exactly_like_gymnasium(spec):
     env = make_maze_env(ENV_ID, continuing_task=True, max_episode_steps=10**6)
     env.reset(seed=0)
     pe = env.unwrapped.point_env
     start = np.array([-2.4, 2.3, 0.5, -0.2])
     pe.set_state(start[:2], start[2:])
-    batch = MazeBatch(ENV_ID, None, 2)
-    batch.reset(1, start)
+    batch = BatchSim(spec, 3)
+    batch.reset(start[None], rows=[1])
     actions = np.random.default_rng(0).uniform(-1.5, 1.5, size=(300, 2))  # some beyond the clip
     for a in actions:
         obs = env.step(a)[0]["observation"]
-        assert np.array_equal(batch.step(1, a), obs)
-    assert np.array_equal(batch.state(0), np.zeros(4))  # other slots untouched
-    with pytest.raises(SimulationError, match="non-finite action"):
-        batch.step(0, np.array([np.nan, 0.0]))
+        assert batch.step(a[None], rows=[1]) == {}
+        assert np.array_equal(batch.observe([1])[0], obs)
+    assert np.array_equal(batch.observe([0]), np.zeros((1, 4)))  # other slots untouched
+    # One slot's bad action fails that slot only; the state round-trips exactly.
+    state = batch.get_state([1])
+    bad = np.array([[np.nan, 0.0], [0.3, 0.1]])
+    assert list(batch.step(bad, rows=[0, 2])) == [0]
+    assert "non-finite action" in batch.step(bad, rows=[0, 2])[0]
+    assert not np.array_equal(batch.observe([2]), np.zeros((1, 4)))
+    batch.set_state(state, rows=[2])
+    assert np.array_equal(batch.get_state([2]), state)
+    assert np.array_equal(batch.observe([2]), batch.observe([1]))
     assert isinstance(env, gym.Env)
 
 
@@ -101,14 +113,14 @@ def _specs(n: int, layout) -> list[EpisodeSpec]:
     return MazeTasks(layout, np.array([[1.5, -0.4]]), seed=0).episodes("random_goal", n)
 
 
-def test_a_failing_episode_ends_alone_and_others_are_unchanged(small_model, layout):
+def test_a_failing_episode_ends_alone_and_others_are_unchanged(small_model, spec, layout):
     agent = SkillMPC(small_model, SkillPlanner(small_model, PlannerConfig(3, CEMConfig(8, 2, 2))))
     run_cfg = RunConfig(max_steps=30, replan_every=10)
     specs = _specs(3, layout)
-    clean, _ = run_episodes(agent, MazeBatch(ENV_ID, None, 3), specs, run_cfg)
+    clean, _ = run_episodes(agent, BatchSim(spec, 3), specs, run_cfg)
     # A fourth episode whose start velocity is NaN: its planning and simulation cannot go on.
     bad = EpisodeSpec("random_goal", 99, np.array([0.5, 0.5, np.nan, 0.0]), specs[0].goal, 5)
-    mixed, calls = run_episodes(agent, MazeBatch(ENV_ID, None, 2), [*specs, bad], run_cfg)
+    mixed, calls = run_episodes(agent, BatchSim(spec, 2), [*specs, bad], run_cfg)
     assert [c.envs for c in calls][:2] == [2, 2]  # waves of two environments
     assert mixed[3].error is not None and "non-finite" in mixed[3].error
     for a, b in zip(clean, mixed[:3], strict=True):

@@ -6,6 +6,7 @@ import torch
 
 from pipeline.errors import UserError
 from pipeline.model import SkillModel, SkillModelConfig
+from pipeline.model.rollout import rollout_skills
 from pipeline.planning import (
     CEM,
     CEMConfig,
@@ -13,7 +14,6 @@ from pipeline.planning import (
     PlannerConfig,
     SkillPlanner,
     problem_generators,
-    rollout_skills,
     shift_plan,
 )
 from pipeline.planning.mpc import SkillMPC
@@ -101,7 +101,8 @@ def model() -> SkillModel:
 def test_rollout_chains_prior_and_tawm_means(model):
     s0 = torch.randn(2, 4)
     eps = torch.randn(2, 5, 3, 3)
-    states, z = rollout_skills(model, s0, eps)
+    rollout = rollout_skills(model, s0[:, None], eps=eps)
+    states, z = rollout.states, rollout.z
     assert states.shape == (2, 5, 4, 4) and z.shape == (2, 5, 3, 3)
     a, k = 1, 3  # one candidate by hand: z_i = mu(s_i) + sigma(s_i) eps_i, s_i+1 = TAWM mean
     s = s0[a]

@@ -15,10 +15,11 @@ from factories import make_info, make_skill_episodes
 from typer.testing import CliRunner
 
 from cli import app
-from pipeline.envs import ExpertConfig, dataset_info, generate_episodes, make_maze_env, maze_layout
+from pipeline.config import DynamicsParams
+from pipeline.envs import BatchSim, ExpertConfig, PointMazeSpec, dataset_info, generate_episodes
 from pipeline.errors import UserError
-from pipeline.evaluation.open_loop import BatchSim, choose_starts, tawm_chain, tawm_predictive
-from pipeline.evaluation.validate_metrics import (
+from pipeline.evaluation.open_loop import choose_starts, restore, tawm_predictive
+from pipeline.evaluation.open_loop_metrics import (
     EXPECTED_WITHIN,
     first_wall_crossing,
     gaussian_nll,
@@ -26,15 +27,10 @@ from pipeline.evaluation.validate_metrics import (
     within_sigma,
 )
 from pipeline.model import SkillModel, SkillModelConfig
-from pipeline.model.dynamics import (
-    DynamicsConfig,
-    FitConfig,
-    fit_dynamics,
-    load_dynamics,
-    save_dynamics,
-    transition_index,
-)
+from pipeline.model.checkpoint import load_dynamics, save_dynamics
+from pipeline.model.rollout import rollout_skills
 from pipeline.segments import build_segments, load_segments, save_segments
+from pipeline.training.dynamics import fit_dynamics, transition_index
 
 ENV_ID = "PointMaze_Medium-v3"
 runner = CliRunner()
@@ -73,12 +69,12 @@ def test_restored_states_replay_whole_windows_exactly(recorded):
     episodes, segments = recorded
     starts = np.concatenate([segments.starts[s] for s in ("train", "validation", "test")])
     actions64 = np.concatenate([ep.actions for ep in episodes])
-    sim = BatchSim(ENV_ID, segments.info.env_kwargs, len(starts))
+    sim = BatchSim(PointMazeSpec.create(ENV_ID, **segments.info.env_kwargs), len(starts))
     for actions, atol in ((actions64, 1e-12), (segments.actions, 1e-6)):
-        sim.restore(segments.physics[starts], segments.states[starts], [""] * len(starts))
+        restore(sim, segments.physics[starts], segments.states[starts], [""] * len(starts))
         worst = 0.0
         for k in range(segments.horizon):
-            sim.step(actions[starts + k].astype(np.float64))
+            assert not sim.step(actions[starts + k].astype(np.float64))
             worst = max(worst, np.abs(sim.observe() - segments.physics[starts + k + 1, 1:]).max())
         assert worst <= atol, worst
 
@@ -86,18 +82,18 @@ def test_restored_states_replay_whole_windows_exactly(recorded):
 def test_unrestorable_states_are_user_errors(recorded):
     _, segments = recorded
     idx = segments.starts["test"][:3]
-    sim = BatchSim(ENV_ID, segments.info.env_kwargs, 3)
+    sim = BatchSim(PointMazeSpec.create(ENV_ID, **segments.info.env_kwargs), 3)
     where = ["a", "b", "test episode 2, step 7"]
     moved = segments.physics[idx].copy()
     moved[2, 1] += 0.5  # physics from another moment than the observation
     with pytest.raises(UserError, match="test episode 2, step 7 cannot be restored"):
-        sim.restore(moved, segments.states[idx], where)
+        restore(sim, moved, segments.states[idx], where)
     nan = segments.physics[idx].copy()
     nan[0, 3] = np.nan
     with pytest.raises(UserError, match="at a is not finite"):
-        sim.restore(nan, segments.states[idx], where)
+        restore(sim, nan, segments.states[idx], where)
     with pytest.raises(UserError, match="another model"):
-        sim.restore(segments.physics[idx, :4], segments.states[idx], where)
+        restore(sim, segments.physics[idx, :4], segments.states[idx], where)
 
 
 def test_starts_are_held_out_and_leave_room_for_the_chain(recorded):
@@ -140,7 +136,7 @@ def test_calibration_of_synthetic_gaussians():
 
 @pytest.fixture(scope="module")
 def layout():
-    return maze_layout(make_maze_env(ENV_ID))
+    return PointMazeSpec.create(ENV_ID).layout
 
 
 def test_wall_crossing_on_hand_made_paths(layout):
@@ -185,13 +181,14 @@ def _tiny_model(state_dim=4, seed=0):
 def test_tawm_predictive_is_exact_for_one_skill_and_chains_means():
     model = _tiny_model()
     s0, z = torch.randn(5, 4), torch.randn(5, 3, 3)
-    chain_mean, chain_std = tawm_chain(model, s0, z)
+    chain = rollout_skills(model, s0, z=z)
     mean, std = tawm_predictive(model, s0, z, 256, torch.Generator().manual_seed(0))
     one_mean, one_std = model.predict_end(s0, z[:, 0])
     torch.testing.assert_close(mean[:, 0], one_mean)
     torch.testing.assert_close(std[:, 0], one_std)
-    torch.testing.assert_close(chain_mean[:, 0], one_mean)
-    torch.testing.assert_close(chain_mean[:, 1], model.predict_end(one_mean, z[:, 1])[0])
+    torch.testing.assert_close(chain.states[:, 1], one_mean)
+    torch.testing.assert_close(chain.std[:, 0], one_std)
+    torch.testing.assert_close(chain.states[:, 2], model.predict_end(one_mean, z[:, 1])[0])
     assert mean.shape == std.shape == (5, 3, 4) and torch.isfinite(std).all()
 
 
@@ -201,10 +198,8 @@ def test_single_step_model_learns_and_round_trips(tmp_path):
     episodes = make_skill_episodes(n_episodes=12, length=120, seed=1)
     split = {"train": 0.7, "validation": 0.3, "test": 0.0}
     segments = build_segments(episodes, make_info("skills", 0), 11, 1, split, seed=0)
-    fit = FitConfig(batch_size=128, lr=3e-3, max_steps=400, eval_every=200, seed=0)
-    model, metrics = fit_dynamics(
-        segments, DynamicsConfig(4, 2, hidden=32), fit, torch.device("cpu")
-    )
+    fit = DynamicsParams(hidden=32, batch_size=128, lr=3e-3, max_steps=400, eval_every=200)
+    model, metrics = fit_dynamics(segments, fit, torch.device("cpu"))
     idx = transition_index(segments, "validation")
     s, a, s1 = (
         torch.as_tensor(x)

@@ -1,5 +1,7 @@
-"""PointMaze environments, the scripted D4RL-style expert, data generation and dataset checks."""
+"""Environments behind one spec, the batched simulator, the scripted D4RL-style expert, data
+generation and dataset checks."""
 
+from pipeline.envs.batch import BatchSim
 from pipeline.envs.checks import DatasetReport, check_maze_dataset, raise_for_problems
 from pipeline.envs.expert import ExpertConfig, WaypointExpert
 from pipeline.envs.generate import dataset_info, generate_episodes
@@ -17,11 +19,15 @@ from pipeline.envs.maze import (
     step_point_mass,
     xy_to_cell,
 )
+from pipeline.envs.spec import EnvSpec, PointMazeSpec, make_env_spec
 
 __all__ = [
     "SUPPORTED_ENVS",
+    "BatchSim",
     "DatasetReport",
+    "EnvSpec",
     "ExpertConfig",
+    "PointMazeSpec",
     "WaypointExpert",
     "cell_to_xy",
     "check_maze_dataset",
@@ -29,6 +35,7 @@ __all__ = [
     "free_cells",
     "generate_episodes",
     "get_physics_state",
+    "make_env_spec",
     "make_maze_env",
     "max_episode_steps",
     "maze_layout",

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from pipeline.evaluation.maze_batch import MazeBatch
+from pipeline.envs.batch import BatchSim
 from pipeline.evaluation.tasks import EpisodeSpec
 from pipeline.planning.mpc import SkillMPC
 
@@ -125,15 +125,15 @@ def _describe(exc: BaseException) -> str:
 class _Wave:
     """The state of one wave of episodes (one per slot) while it runs."""
 
-    def __init__(self, envs: MazeBatch, specs: list[EpisodeSpec]):
+    def __init__(self, envs: BatchSim, specs: list[EpisodeSpec]):
         self.envs = envs
         self.results = [EpisodeResult(spec) for spec in specs]
         self.goals = np.stack([s.goal for s in specs])
-        self.states = np.stack([s.start for s in specs]).astype(np.float64)
+        rows = np.arange(len(specs))
+        envs.reset(np.stack([s.start for s in specs]), rows)
+        self.states = envs.observe(rows)
         self.alive = np.ones(len(specs), dtype=bool)
-        for i, spec in enumerate(specs):
-            envs.reset(i, spec.start)
-            self.states[i] = envs.state(i)
+        for i in rows:
             self.results[i].trace.states.append(self.states[i].copy())
 
     def fail(self, rows: np.ndarray, message: str) -> None:
@@ -166,17 +166,20 @@ def _replan(agent: SkillMPC, wave: _Wave, rows: np.ndarray, t: int, calls: list[
 
 
 def _step(wave: _Wave, rows: np.ndarray, actions: np.ndarray, t: int, cfg: RunConfig) -> None:
+    failed = wave.envs.step(actions, rows)  # one slot's failure does not end the others' episodes
+    for i, message in failed.items():
+        wave.fail(np.array([i]), message)
+    stepped = np.array([i not in failed for i in rows], dtype=bool)
+    wave.states[rows[stepped]] = wave.envs.observe(rows[stepped])
+    goal_dims = list(wave.envs.spec.goal_dims)
     for j, i in enumerate(rows):
-        result = wave.results[i]
-        try:
-            wave.states[i] = wave.envs.step(i, actions[j])
-        except Exception as exc:  # one slot's failure must not end the others' episodes
-            wave.fail(np.array([i]), _describe(exc))
+        if not stepped[j]:
             continue
+        result = wave.results[i]
         result.steps = t + 1
         result.trace.actions.append(actions[j].copy())
         result.trace.states.append(wave.states[i].copy())
-        d = float(np.linalg.norm(wave.states[i, :2] - wave.goals[i]))
+        d = float(np.linalg.norm(wave.states[i, goal_dims] - wave.goals[i]))
         result.final_distance = d
         result.min_distance = min(result.min_distance, d)
         if result.steps_to_goal is None and d <= cfg.success_radius:
@@ -188,7 +191,7 @@ def _step(wave: _Wave, rows: np.ndarray, actions: np.ndarray, t: int, cfg: RunCo
 
 
 def run_wave(
-    agent: SkillMPC, envs: MazeBatch, specs: list[EpisodeSpec], cfg: RunConfig
+    agent: SkillMPC, envs: BatchSim, specs: list[EpisodeSpec], cfg: RunConfig
 ) -> tuple[list[EpisodeResult], list[PlanCall]]:
     """Run `len(specs) <= len(envs)` episodes together until each ends.
 
@@ -215,7 +218,7 @@ def run_wave(
 
 def run_episodes(
     agent: SkillMPC,
-    envs: MazeBatch,
+    envs: BatchSim,
     specs: list[EpisodeSpec],
     cfg: RunConfig,
     on_wave: Callable[[list[EpisodeResult]], None] | None = None,

@@ -1,30 +1,86 @@
-"""Open-loop skill execution in the real simulator, from exactly restored held-out states.
+"""Open-loop evaluation: the TAWM vs a single-step model against held-out rollouts in MuJoCo.
 
-The paper's §4.1 / figure 4 experiment: fix a sequence of skills z_1..z_L before acting, run the
-low-level policy pi_theta(a | s, z_k) for H steps per skill in MuJoCo without replanning, and
-compare where the agent really ends up with (a) the TAWM's chained prediction
-p_psi(s_T | s_0, z) (eq. 1's world model) and (b) a single-step model rolled forward under the
-same executed actions. Everything is batched: B simulators step together, the policy and the
-models see `[B, ...]` tensors.
+Paper §4.1 / figure 4 / appendix D claim that a temporally abstract world model predicts where a
+skill ends far better than a single-step model rolled forward, which compounds its errors and walks
+through walls. `run_open_loop` measures that claim (the `validate` stage):
+
+1. Draw N held-out start states from test-split episodes and restore each exactly in MuJoCo.
+2. Choose a sequence of L skills per start, two ways ("modes"): sampled from the prior as a plan
+   would be (whitened skills through `rollout_skills`), or the posterior means of the L consecutive
+   recorded windows that follow the start (`posterior_skills`).
+3. Execute each sequence R times open loop in the simulator (`execute_skills`), H = T steps per
+   skill: the policy pi_theta(a | s, z_k) stays closed-loop on s_t, the skills never change.
+4. Predict the end of every skill with the TAWM (chained means, and the moment-matched predictive
+   distribution) and with the single-step model rolled forward H k steps under the actions the
+   policy really sent.
+
+The metrics of the result are in `pipeline.evaluation.open_loop_metrics`.
 """
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
-import mujoco
 import numpy as np
 import torch
 
-from pipeline.envs.maze import PHYSICS_SPEC, make_maze_env, point_env, step_point_mass
+from pipeline.config import ValidateParams
+from pipeline.envs.batch import BatchSim
+from pipeline.envs.spec import EnvSpec
 from pipeline.errors import UserError
+from pipeline.model.dynamics import DynamicsModel
+from pipeline.model.rollout import rollout_skills
 from pipeline.model.skill_model import SkillModel
 from pipeline.segments import Segments
+
+MODES = ("prior", "posterior")
 
 # A restored state's qpos/qvel must reproduce the recorded observation. Observations are stored
 # as float32 in the segments, so they agree with the float64 physics to float32 rounding:
 # relative 6e-8; 1e-6 (plus an absolute 1e-6 near zero) leaves margin and nothing more.
 _RESTORE_RTOL = 1e-6
+
+
+@dataclass
+class ModeResult:
+    """Rollouts and predictions of one mode, B = N R rollouts (start-major, repeats inner).
+
+    Attributes:
+        real: `[B, L H + 1, sd]` simulated states.
+        actions: `[B, L H, ad]` executed actions.
+        tawm_mean: `[B, L, sd]` chained TAWM means after 1..L skills.
+        pred_mean, pred_std: `[B, L, sd]` the TAWM's moment-matched predictive distribution.
+        single_step: `[B, L H + 1, sd]` single-step model's mean rollout.
+    """
+
+    real: np.ndarray
+    actions: np.ndarray
+    tawm_mean: np.ndarray
+    pred_mean: np.ndarray
+    pred_std: np.ndarray
+    single_step: np.ndarray
+
+
+@dataclass
+class OpenLoopResult:
+    """Everything `run_open_loop` produced.
+
+    Attributes:
+        horizon: H, steps per skill.
+        starts: `[N]` global step indices of the start states in the segments.
+        repeats: R.
+        modes: "prior" / "posterior" -> results.
+        sim_steps: Simulator steps taken in total.
+        sim_s: Seconds spent executing rollouts (simulator + policy).
+    """
+
+    horizon: int
+    starts: np.ndarray
+    repeats: int
+    modes: dict[str, ModeResult]
+    sim_steps: int
+    sim_s: float
 
 
 def choose_starts(segments: Segments, n: int, span: int, seed: int) -> np.ndarray:
@@ -54,69 +110,36 @@ def choose_starts(segments: Segments, n: int, span: int, seed: int) -> np.ndarra
     return np.sort(rng.choice(candidates, size=min(n, candidates.size), replace=False))
 
 
-class BatchSim:
-    """B independent PointMaze point masses sharing one MuJoCo model.
+def restore(sim: BatchSim, physics: np.ndarray, observed: np.ndarray, where: list[str]) -> None:
+    """Put every slot in a recorded full-physics state and check that it took.
 
-    Each is stepped with `step_point_mass`, i.e. exactly gymnasium-robotics' `PointEnv.step`.
-    A plain Python loop over the B `MjData` per step: one point mass step costs microseconds, so
-    the loop (measured ~60k steps/s on one loaded core) is not worth threads.
+    Args:
+        physics: `[B, physics_dim]` float64 `mjSTATE_FULLPHYSICS` states.
+        observed: `[B, state_dim]` the observations recorded with them.
+        where: B labels for error messages (e.g. "test episode 12, step 40").
+
+    Raises:
+        UserError: a state of the wrong size, not finite, or that does not reproduce its
+            recorded observation (physics and observations from different runs).
     """
-
-    def __init__(self, env_id: str, env_kwargs: dict, n: int):
-        env = make_maze_env(env_id, **env_kwargs)
-        self.model = point_env(env).model
-        self.datas = [mujoco.MjData(self.model) for _ in range(n)]
-        self.physics_dim = mujoco.mj_stateSize(self.model, PHYSICS_SPEC)
-        env.close()
-
-    def __len__(self) -> int:
-        return len(self.datas)
-
-    def restore(self, physics: np.ndarray, observed: np.ndarray, where: list[str]) -> None:
-        """Set each simulator to a recorded full-physics state and check it took.
-
-        As `pipeline.envs.set_physics_state`: `mj_setState`, zero solver warm start (not part
-        of the state), `mj_forward`.
-
-        Args:
-            physics: `[B, physics_dim]` float64 `mjSTATE_FULLPHYSICS` states.
-            observed: `[B, state_dim]` the observations recorded with them.
-            where: B labels for error messages (e.g. "test episode 12, step 40").
-
-        Raises:
-            UserError: a state of the wrong size, not finite, or that does not reproduce its
-                recorded observation (physics and observations from different runs).
-        """
-        physics = np.asarray(physics, dtype=np.float64)
-        if physics.shape != (len(self), self.physics_dim):
-            raise UserError(
-                f"physics states have shape {physics.shape}; this environment's MuJoCo state "
-                f"has {self.physics_dim} numbers; the dataset was recorded in another model"
-            )
-        bad = ~np.isfinite(physics).all(axis=1)
-        if bad.any():
-            raise UserError(f"MuJoCo state at {where[int(np.argmax(bad))]} is not finite")
-        for data, state in zip(self.datas, physics, strict=True):
-            mujoco.mj_setState(self.model, data, state, PHYSICS_SPEC)
-            data.qacc_warmstart[:] = 0.0
-            mujoco.mj_forward(self.model, data)
-        got = self.observe()
-        ok = np.isclose(got, observed, rtol=_RESTORE_RTOL, atol=_RESTORE_RTOL).all(axis=1)
-        if not ok.all():
-            i = int(np.argmax(~ok))
-            raise UserError(
-                f"MuJoCo state at {where[i]} cannot be restored: it gives {got[i].round(4)}, "
-                f"the recorded observation is {np.asarray(observed[i]).round(4)}"
-            )
-
-    def observe(self) -> np.ndarray:
-        """Observations `[B, 4]` = `[x, y, vx, vy]` (qpos, qvel), float64."""
-        return np.array([(*d.qpos, *d.qvel) for d in self.datas])
-
-    def step(self, actions: np.ndarray) -> None:
-        """Apply `actions [B, 2]` for one control step (dt = 0.01 s) in every simulator."""
-        for data, action in zip(self.datas, actions.tolist(), strict=True):
-            step_point_mass(self.model, data, action)
+    physics = np.asarray(physics, dtype=np.float64)
+    if physics.shape != (len(sim), sim.physics_dim):
+        raise UserError(
+            f"physics states have shape {physics.shape}; this environment's MuJoCo state "
+            f"has {sim.physics_dim} numbers; the dataset was recorded in another model"
+        )
+    bad = ~np.isfinite(physics).all(axis=1)
+    if bad.any():
+        raise UserError(f"MuJoCo state at {where[int(np.argmax(bad))]} is not finite")
+    sim.set_state(physics)
+    got = sim.observe()
+    ok = np.isclose(got, observed, rtol=_RESTORE_RTOL, atol=_RESTORE_RTOL).all(axis=1)
+    if not ok.all():
+        i = int(np.argmax(~ok))
+        raise UserError(
+            f"MuJoCo state at {where[i]} cannot be restored: it gives {got[i].round(4)}, "
+            f"the recorded observation is {np.asarray(observed[i]).round(4)}"
+        )
 
 
 @dataclass
@@ -145,6 +168,9 @@ def execute_skills(
         z: `[B, L, z_dim]` skill sequence per simulator, on the model's device.
         horizon: H, steps per skill (the TAWM's T).
         sample_actions: Sample a ~ pi (as the data's noisy demonstrator did) or take its mean.
+
+    Raises:
+        UserError: a simulator failed (non-finite action or MuJoCo instability).
     """
     device = z.device
     states = [sim.observe()]
@@ -153,32 +179,12 @@ def execute_skills(
         for _ in range(horizon):
             s = torch.as_tensor(states[-1], dtype=torch.float32, device=device)
             a = model.act(s, z[:, k], sample=sample_actions).cpu().numpy().astype(np.float64)
-            sim.step(a)
+            if failed := sim.step(a):
+                i, why = next(iter(failed.items()))
+                raise UserError(f"open-loop rollout {i} failed at step {len(actions)}: {why}")
             actions.append(a)
             states.append(sim.observe())
     return Executed(np.stack(states, axis=1), np.stack(actions, axis=1))
-
-
-@torch.no_grad()
-def prior_skills(model: SkillModel, s0: torch.Tensor, eps: torch.Tensor) -> torch.Tensor:
-    """A skill sequence sampled from the prior, as a plan would hold it (paper §3).
-
-    z_k = mu_omega(s_k) + sigma_omega(s_k) * eps_k with s_k the TAWM's chained mean prediction
-    (s_0 is real): open loop, the real s_k is not known when the sequence is fixed.
-
-    Args:
-        s0: `[B, sd]` raw start states.
-        eps: `[B, L, z_dim]` standard normal draws (whitened skills).
-
-    Returns:
-        z `[B, L, z_dim]`.
-    """
-    s, zs = s0, []
-    for k in range(eps.shape[1]):
-        mu, sigma = model.skill_prior(s)
-        zs.append(mu + sigma * eps[:, k])
-        s = model.predict_end(s, zs[-1])[0]
-    return torch.stack(zs, dim=1)
 
 
 @torch.no_grad()
@@ -201,33 +207,13 @@ def posterior_skills(
     return model.infer_skill(s, a)[0].reshape(b, windows, -1)
 
 
-@torch.no_grad()
-def tawm_chain(
-    model: SkillModel, s0: torch.Tensor, z: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Deterministic chained prediction: s_{k+1} = mean p_psi(s_T | s_k, z_k), from real s_0.
-
-    This is what a planner reads off the TAWM for a skill sequence.
-
-    Returns:
-        means `[B, L, sd]` and the TAWM std at each chained step `[B, L, sd]` (raw units).
-    """
-    s, means, stds = s0, [], []
-    for k in range(z.shape[1]):
-        s, std = model.predict_end(s, z[:, k])
-        means.append(s)
-        stds.append(std)
-    return torch.stack(means, dim=1), torch.stack(stds, dim=1)
-
-
-@torch.no_grad()
 def tawm_predictive(
     model: SkillModel, s0: torch.Tensor, z: torch.Tensor, particles: int, generator: torch.Generator
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The TAWM's predictive distribution of s_{kH} after k chained skills, moment-matched.
 
     p(s_k | s_0, z_1..k) = integral of prod p_psi(s_j | s_{j-1}, z_j): propagated with
-    `particles` samples per rollout; at each k the mixture of the particles' Gaussians is
+    `particles` sampled chains per rollout; at each k the mixture of the particles' Gaussians is
     summarized by its mean and per-dimension std (exact for k = 1, where every particle is s_0).
 
     Args:
@@ -236,15 +222,95 @@ def tawm_predictive(
     Returns:
         mean, std `[B, L, sd]` (raw units).
     """
-    b, n_skills, _ = z.shape
-    s = s0[:, None].expand(b, particles, -1)
-    means, stds = [], []
-    for k in range(n_skills):
-        mu, sigma = model.predict_end(s, z[:, k, None].expand(b, particles, -1))
-        mean = mu.mean(1)
-        var = sigma.square().mean(1) + (mu - mean[:, None]).square().mean(1)
-        means.append(mean)
-        stds.append(var.sqrt())
-        noise = torch.randn(mu.shape, generator=generator).to(mu.device)
-        s = mu + sigma * noise
-    return torch.stack(means, dim=1), torch.stack(stds, dim=1)
+    b, n_skills, z_dim = z.shape
+    chains = rollout_skills(
+        model, s0[:, None], z=z[:, None].expand(b, particles, n_skills, z_dim), generator=generator
+    )
+    mu, sigma = chains.mean, chains.std  # [B, P, L, sd]
+    mean = mu.mean(1)
+    var = sigma.square().mean(1) + (mu - mean[:, None]).square().mean(1)
+    return mean, var.sqrt()
+
+
+def _labels(segments: Segments, steps: np.ndarray) -> list[str]:
+    """'test episode <source index>, step <t>' for global step indices (error messages)."""
+    ep = np.searchsorted(segments.episode_offsets, steps, side="right") - 1
+    return [
+        f"test episode {segments.episode_index[e]}, step {s - segments.episode_offsets[e]}"
+        for e, s in zip(ep, steps, strict=True)
+    ]
+
+
+def _np(x: torch.Tensor) -> np.ndarray:
+    return x.detach().cpu().numpy().astype(np.float64)
+
+
+def run_open_loop(
+    model: SkillModel,
+    dynamics: DynamicsModel,
+    segments: Segments,
+    spec: EnvSpec,
+    horizon: int,
+    cfg: ValidateParams,
+    device: torch.device,
+) -> OpenLoopResult:
+    """Open-loop rollouts from held-out states and both models' predictions (see module doc).
+
+    Seeded by `cfg.seed`: start choice, prior skills, action noise and particles.
+
+    Raises:
+        UserError: no test split, test episodes too short, or unrestorable MuJoCo states.
+    """
+    if segments.physics is None:
+        raise UserError(
+            f"dataset '{segments.info.name}' has no MuJoCo states to restore; validate needs a "
+            "dataset recorded in simulation"
+        )
+    span = cfg.skills * horizon
+    starts = choose_starts(segments, cfg.starts, span, cfg.seed)
+    steps = starts[:, None] + np.arange(span + 1)
+    rec_states = torch.as_tensor(segments.states[steps], device=device)
+    rec_actions = torch.as_tensor(segments.actions[steps[:, :-1]], device=device)
+    physics = np.repeat(segments.physics[starts], cfg.repeats, axis=0)
+    observed = np.repeat(segments.states[starts], cfg.repeats, axis=0)
+    labels = _labels(segments, np.repeat(starts, cfg.repeats))
+    sim = BatchSim(spec, len(physics))
+
+    def rep(x: torch.Tensor) -> torch.Tensor:
+        return x.repeat_interleave(cfg.repeats, dim=0)
+
+    modes, sim_s = {}, 0.0
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(cfg.seed)  # the policy's action noise (SkillModel.act)
+        generator = torch.Generator().manual_seed(cfg.seed)
+        for mode in MODES:
+            restore(sim, physics, observed, labels)
+            s0 = torch.as_tensor(sim.observe()[:: cfg.repeats], dtype=torch.float32, device=device)
+            if mode == "prior":
+                eps = torch.randn(len(s0), cfg.skills, model.config.z_dim, generator=generator)
+                chain = rollout_skills(model, s0, eps=eps.to(device))
+            else:
+                z = posterior_skills(model, rec_states, rec_actions, horizon)
+                chain = rollout_skills(model, s0, z=z)
+            started = time.monotonic()
+            executed = execute_skills(model, sim, rep(chain.z), horizon, cfg.sample_actions)
+            sim_s += time.monotonic() - started
+            pred_mean, pred_std = tawm_predictive(model, s0, chain.z, cfg.particles, generator)
+            actions = torch.as_tensor(executed.actions, dtype=torch.float32, device=device)
+            single = dynamics.rollout(rep(s0), actions)
+            modes[mode] = ModeResult(
+                real=executed.states,
+                actions=executed.actions,
+                tawm_mean=_np(rep(chain.states[:, 1:])),
+                pred_mean=_np(rep(pred_mean)),
+                pred_std=_np(rep(pred_std)),
+                single_step=_np(single),
+            )
+    return OpenLoopResult(
+        horizon=horizon,
+        starts=starts,
+        repeats=cfg.repeats,
+        modes=modes,
+        sim_steps=len(MODES) * len(physics) * span,
+        sim_s=sim_s,
+    )

@@ -74,8 +74,9 @@ def check_goal(layout: dict[str, Any], goal: np.ndarray) -> tuple[int, int]:
     return row, col
 
 
-def train_locations(segments: Segments, dims: tuple[int, int] = (0, 1)) -> np.ndarray:
-    """`[N, 2]` positions of every step of the train split's episodes (the goals' pool)."""
+def train_locations(segments: Segments, dims: tuple[int, ...]) -> np.ndarray:
+    """`[N, G]` positions (state dims `dims`: the environment spec's `goal_dims`) of every step of
+    the train split's episodes (the goals' pool)."""
     offsets, mask = segments.episode_offsets, segments.episode_split == 0
     steps = np.concatenate(
         [np.arange(offsets[e], offsets[e + 1]) for e in np.flatnonzero(mask)]

@@ -1,57 +1,97 @@
 """Model checkpoints: safetensors weights + a JSON config that is enough to rebuild the model.
 
-Loading never unpickles anything: weights come from safetensors, the config from JSON.
+Loading never unpickles anything: weights come from safetensors, the config from JSON. The skill
+model (`save_model` / `load_model`) and the single-step model (`save_dynamics` / `load_dynamics`)
+share the format and the code; each has its own format tag and the command that rebuilds it.
 """
 
 from __future__ import annotations
 
 import json
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
+from torch import nn
 
 from pipeline.errors import UserError
 from pipeline.io import atomic_path
+from pipeline.model.dynamics import DynamicsConfig, DynamicsModel
 from pipeline.model.skill_model import SkillModel, SkillModelConfig
 
 WEIGHTS_FILE = "model.safetensors"
 CONFIG_FILE = "config.json"
 FORMAT_VERSION = 1
+SKILL_FORMAT = "oposm-skill-model"
+DYNAMICS_FORMAT = "oposm-dynamics-model"
 
 
-def save_model(model: SkillModel, directory: str | Path, extra: dict[str, Any]) -> None:
-    """Write `model.safetensors` and `config.json` (model config + `extra`, e.g. dataset info).
+def _write(module: nn.Module, directory: str | Path, weights_format: str, meta: dict) -> None:
+    """Write `model.safetensors` then `config.json` (`meta`), each replaced atomically.
 
-    Each file is replaced atomically; the weights are written first, so a config always
-    describes weights at least as new as itself.
+    The weights are written first, so a config always describes weights at least as new as itself.
     """
     directory = Path(directory)
-    state = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
+    state = {k: v.detach().cpu().contiguous() for k, v in module.state_dict().items()}
     with atomic_path(directory / WEIGHTS_FILE) as tmp:
-        save_file(state, tmp, metadata={"format": "oposm-skill-model"})
-    meta = {"format_version": FORMAT_VERSION, "model": model.config.to_dict(), **extra}
+        save_file(state, tmp, metadata={"format": weights_format})
     with atomic_path(directory / CONFIG_FILE) as tmp:
         tmp.write_text(json.dumps(meta, indent=2) + "\n")
 
 
+def _read_meta(directory: str | Path, what: str, command: str) -> dict[str, Any]:
+    """config.json of the checkpoint in `directory` (`what` and `command` name it in errors)."""
+    path = Path(directory) / CONFIG_FILE
+    if not path.exists():
+        raise UserError(f"no {what} in {directory}; run `{command}` first")
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise UserError(f"{path} is unreadable ({exc}); re-run `{command}`") from exc
+
+
+def _load_weights(
+    module: nn.Module, directory: str | Path, device: str | torch.device, command: str
+) -> nn.Module:
+    """Load `model.safetensors` into `module` (moved to `device`); return it in eval mode."""
+    try:
+        state = load_file(Path(directory) / WEIGHTS_FILE, device=str(device))
+    except (OSError, SafetensorError) as exc:
+        raise UserError(
+            f"{directory}/{WEIGHTS_FILE} is unreadable ({exc}); re-run `{command}`"
+        ) from exc
+    module = module.to(device)
+    try:
+        module.load_state_dict(state)
+    except RuntimeError as exc:
+        first = str(exc).splitlines()[1].strip() if "\n" in str(exc) else str(exc)
+        raise UserError(
+            f"{directory}: weights do not match the config ({first}); re-run `{command}`"
+        ) from exc
+    return module.eval()
+
+
+def save_model(model: SkillModel, directory: str | Path, extra: dict[str, Any]) -> None:
+    """Write the skill model: weights and `config.json` (model config + `extra`, e.g. dataset
+    info)."""
+    meta = {"format_version": FORMAT_VERSION, "model": model.config.to_dict(), **extra}
+    _write(model, directory, SKILL_FORMAT, meta)
+
+
 def read_config(directory: str | Path) -> dict[str, Any]:
-    """The checkpoint's config.json as a dict.
+    """The skill model checkpoint's config.json as a dict.
 
     Raises:
         UserError: no checkpoint there, or an unreadable / outdated one.
     """
-    path = Path(directory) / CONFIG_FILE
-    if not path.exists():
-        raise UserError(f"no model checkpoint in {directory}; run `oposm train` first")
-    try:
-        meta = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise UserError(f"{path} is unreadable ({exc}); re-run `oposm train`") from exc
+    meta = _read_meta(directory, "model checkpoint", "oposm train")
     if meta.get("format_version") != FORMAT_VERSION:
-        raise UserError(f"{path}: checkpoint format is outdated; re-run `oposm train`")
+        raise UserError(
+            f"{Path(directory) / CONFIG_FILE}: checkpoint format is outdated; re-run `oposm train`"
+        )
     return meta
 
 
@@ -82,14 +122,32 @@ def load_model(
             f"checkpoint in {directory} is for another model config ({'; '.join(diff)}); "
             "retrain or use matching params"
         )
+    return _load_weights(SkillModel(config), directory, device, "oposm train"), meta
+
+
+def save_dynamics(model: DynamicsModel, directory: str | Path, extra: dict[str, Any]) -> None:
+    """Write the single-step model: weights and `config.json` (config + `extra`, e.g. dataset
+    info)."""
+    meta = {"format": DYNAMICS_FORMAT, "format_version": FORMAT_VERSION}
+    _write(model, directory, DYNAMICS_FORMAT, meta | {"model": asdict(model.config)} | extra)
+
+
+def load_dynamics(
+    directory: str | Path, device: str | torch.device = "cpu"
+) -> tuple[DynamicsModel, dict[str, Any]]:
+    """Rebuild a `DynamicsModel` (eval mode) and return it with its config.json dict.
+
+    Raises:
+        UserError: missing, corrupt or outdated files.
+    """
+    meta = _read_meta(directory, "dynamics model", "oposm dynamics")
+    path = Path(directory) / CONFIG_FILE
+    if meta.get("format") != DYNAMICS_FORMAT or meta.get("format_version") != FORMAT_VERSION:
+        raise UserError(f"{path}: not a current dynamics model; re-run `oposm dynamics`")
     try:
-        state = load_file(Path(directory) / WEIGHTS_FILE, device=str(device))
-    except (OSError, SafetensorError) as exc:
-        raise UserError(f"{directory}/{WEIGHTS_FILE} is unreadable ({exc}); retrain") from exc
-    model = SkillModel(config).to(device)
-    try:
-        model.load_state_dict(state)
-    except RuntimeError as exc:
-        first = str(exc).splitlines()[1].strip() if "\n" in str(exc) else str(exc)
-        raise UserError(f"{directory}: weights do not match the config ({first})") from exc
-    return model.eval(), meta
+        config = DynamicsConfig(**meta["model"])
+    except (KeyError, TypeError) as exc:
+        raise UserError(
+            f"{path} has no valid model config ({exc}); re-run `oposm dynamics`"
+        ) from exc
+    return _load_weights(DynamicsModel(config), directory, device, "oposm dynamics"), meta

@@ -2,7 +2,7 @@
 
 from pipeline.planning.cem import CEM, CEMConfig, CEMResult, problem_generators
 from pipeline.planning.costs import GoalCost
-from pipeline.planning.skills import Plan, PlannerConfig, SkillPlanner, rollout_skills, shift_plan
+from pipeline.planning.skills import Plan, PlannerConfig, SkillPlanner, shift_plan
 
 __all__ = [
     "CEM",
@@ -13,6 +13,5 @@ __all__ = [
     "PlannerConfig",
     "SkillPlanner",
     "problem_generators",
-    "rollout_skills",
     "shift_plan",
 ]

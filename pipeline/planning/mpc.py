@@ -27,7 +27,8 @@ class SkillMPC:
         model: The skill model (prior, TAWM, low-level policy).
         planner: The batched skill planner.
         sample_actions: Sample a ~ pi(a | s, z) instead of taking its mean.
-        goal_dims: State dimensions the goal refers to (x, y for the mazes).
+        goal_dims: State dimensions the goal refers to (the environment spec's `goal_dims`);
+            None: the first G (`GoalCost`'s default).
     """
 
     def __init__(
@@ -35,7 +36,7 @@ class SkillMPC:
         model: SkillModel,
         planner: SkillPlanner,
         sample_actions: bool = False,
-        goal_dims: tuple[int, ...] = (0, 1),
+        goal_dims: tuple[int, ...] | None = None,
     ):
         self.model = model
         self.planner = planner
@@ -44,7 +45,7 @@ class SkillMPC:
         self.device = planner.device
         self._generators: list[torch.Generator] = []
         self._action_rngs: list[np.random.Generator] = []
-        self._goals = torch.zeros(0, len(goal_dims))
+        self._goals = torch.zeros(0)  # [B, G] goal per slot
         self._eps: torch.Tensor | None = None  # [B, L, z] last plan per slot (warm start)
         self._z: torch.Tensor | None = None  # [B, z] skill being executed per slot
         self._warm = torch.zeros(0, dtype=torch.bool)  # [B] slot has a plan to warm-start from

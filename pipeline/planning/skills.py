@@ -21,40 +21,12 @@ from dataclasses import dataclass, field
 
 import torch
 
+from pipeline.model.rollout import rollout_skills
 from pipeline.model.skill_model import SkillModel
 from pipeline.planning.cem import CEM, CEMConfig
 
 # `(predicted states [A, K, L + 1, sd], rows [A]) -> cost [A, K]`, e.g. `GoalCost`.
 StateCost = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
-
-
-@torch.no_grad()
-def rollout_skills(
-    model: SkillModel, s0: torch.Tensor, eps: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Roll whitened skill sequences forward with the TAWM mean.
-
-    Args:
-        model: The skill model (raw-unit interface).
-        s0: `[A, sd]` start state of each problem.
-        eps: `[A, K, L, z]` K candidate sequences of L whitened skills per problem.
-
-    Returns:
-        states `[A, K, L + 1, sd]` (index 0 is s0) and skills z `[A, K, L, z]`.
-    """
-    a, k, n_skills, _ = eps.shape
-    s = s0[:, None, :].expand(a, k, s0.shape[-1]).reshape(a * k, -1)
-    states, skills = [s], []
-    for i in range(n_skills):
-        mean, std = model.skill_prior(s)
-        z = mean + std * eps[:, :, i].reshape(a * k, -1)
-        s, _ = model.predict_end(s, z)
-        states.append(s)
-        skills.append(z)
-    return (
-        torch.stack(states, dim=1).reshape(a, k, n_skills + 1, -1),
-        torch.stack(skills, dim=1).reshape(a, k, n_skills, -1),
-    )
 
 
 @dataclass(frozen=True)
@@ -133,13 +105,16 @@ class SkillPlanner:
         weight = self.config.prior_weight
 
         def objective(eps: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
-            task = cost(rollout_skills(self.model, s0[rows], eps)[0], rows)
+            states = rollout_skills(self.model, s0[rows, None], eps=eps).states  # [A, K, L+1, sd]
+            task = cost(states, rows)
             return task + weight * eps.pow(2).mean(dim=(-2, -1)) if weight else task
 
         result = self.cem.minimize(objective, mean, self.config.init_std, generators)
-        states, z = rollout_skills(self.model, s0, result.best[:, None])  # [B, 1, L + 1, sd]
-        task_cost = cost(states, torch.arange(len(s0), device=s0.device))[:, 0]
-        return Plan(result.best, z[:, 0], states[:, 0], task_cost, result.cost, result.iterations)
+        best = rollout_skills(self.model, s0[:, None], eps=result.best[:, None])  # K = 1
+        task_cost = cost(best.states, torch.arange(len(s0), device=s0.device))[:, 0]
+        return Plan(
+            result.best, best.z[:, 0], best.states[:, 0], task_cost, result.cost, result.iterations
+        )
 
 
 def shift_plan(eps: torch.Tensor) -> torch.Tensor:

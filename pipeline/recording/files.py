@@ -33,8 +33,8 @@ from mcap_protobuf.decoder import DecoderFactory
 from pipeline.dataset import DatasetInfo
 from pipeline.errors import UserError
 from pipeline.recording import metadata
+from pipeline.recording.checks import check_info
 from pipeline.recording.schema import FORMAT_VERSION, SCHEMA_NAME, TOPIC, build_file_descriptor
-from pipeline.recording.validate import check_info
 
 REGENERATE = "re-run `oposm ingest` to regenerate it"
 

@@ -18,6 +18,7 @@ from mcap_protobuf.writer import Writer
 from pipeline.dataset import DatasetInfo, Episode
 from pipeline.errors import UserError
 from pipeline.io import atomic_path
+from pipeline.recording.checks import check_episode, check_info
 from pipeline.recording.metadata import (
     DATASET_RECORD,
     EPISODES_RECORD,
@@ -25,7 +26,6 @@ from pipeline.recording.metadata import (
     encode_info,
 )
 from pipeline.recording.schema import PROFILE, TOPIC, Step
-from pipeline.recording.validate import check_episode, check_info
 
 
 @dataclass(frozen=True)

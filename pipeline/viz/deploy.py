@@ -16,6 +16,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
+from pipeline.envs.spec import EnvSpec
 from pipeline.evaluation.episodes import EpisodeResult
 from pipeline.io import atomic_path
 from pipeline.viz.maze import log_maze
@@ -66,10 +67,12 @@ def _times(steps: np.ndarray, dt: float) -> list[rr.TimeColumn]:
     return [rr.TimeColumn("step", sequence=steps), rr.TimeColumn("sim_time", duration=steps * dt)]
 
 
-def _log_task(rec: rr.RecordingStream, result: EpisodeResult, radius: float) -> None:
+def _log_task(
+    rec: rr.RecordingStream, result: EpisodeResult, pos: list[int], radius: float
+) -> None:
     spec = result.spec
     rec.log(
-        "task/start", rr.Points2D([spec.start[:2]], radii=0.08, colors=START_COLOR), static=True
+        "task/start", rr.Points2D([spec.start[pos]], radii=0.08, colors=START_COLOR), static=True
     )
     rec.log("task/goal", rr.Points2D([spec.goal], radii=0.08, colors=GOAL_COLOR), static=True)
     rec.log(
@@ -79,11 +82,13 @@ def _log_task(rec: rr.RecordingStream, result: EpisodeResult, radius: float) -> 
     )
 
 
-def _log_agent(rec: rr.RecordingStream, result: EpisodeResult, dt: float, radius: float) -> None:
+def _log_agent(
+    rec: rr.RecordingStream, result: EpisodeResult, pos: list[int], dt: float, radius: float
+) -> None:
     trace = result.trace
     states = np.asarray(trace.states)  # [n + 1, sd]
     steps = np.arange(len(states))
-    positions = states[:, :2]
+    positions = states[:, pos]
     rec.send_columns(
         "agent/position",
         indexes=_times(steps, dt),
@@ -114,19 +119,19 @@ def _log_agent(rec: rr.RecordingStream, result: EpisodeResult, dt: float, radius
         rec.log("agent/path", rr.LineStrips2D([positions[: t + 1]], colors=PATH_COLOR, radii=0.02))
 
 
-def _log_plans(rec: rr.RecordingStream, result: EpisodeResult, dt: float) -> None:
+def _log_plans(rec: rr.RecordingStream, result: EpisodeResult, pos: list[int], dt: float) -> None:
     trace = result.trace
     for t, plan, cost in zip(trace.replan_steps, trace.plans, trace.plan_costs, strict=True):
         rec.set_time("step", sequence=t)
         rec.set_time("sim_time", duration=t * dt)
-        xy = plan[:, :2]
+        xy = plan[:, pos]
         rec.log("plan/states", rr.Points2D(xy[1:], radii=0.07, colors=PLAN_COLOR))
         rec.log("plan/path", rr.LineStrips2D([xy], radii=0.015, colors=(*PLAN_COLOR, 140)))
         if np.isfinite(cost):
             rec.log("metrics/plan_cost", rr.Scalars(cost))
 
 
-def _summary(result: EpisodeResult, dt: float) -> str:
+def _summary(result: EpisodeResult, pos: list[int], dt: float) -> str:
     spec = result.spec
     if result.error is not None:
         outcome = f"failed: {result.error}"
@@ -138,7 +143,7 @@ def _summary(result: EpisodeResult, dt: float) -> str:
         outcome += f" (closest {result.min_distance:.2f} m)"
     return (
         f"task {spec.task}, episode {spec.index} (seed {spec.seed}): start "
-        f"{np.round(spec.start[:2], 2).tolist()}, goal {np.round(spec.goal, 2).tolist()}; "
+        f"{np.round(spec.start[pos], 2).tolist()}, goal {np.round(spec.goal, 2).tolist()}; "
         f"{outcome}; {result.replans} replans"
     )
 
@@ -146,19 +151,20 @@ def _summary(result: EpisodeResult, dt: float) -> str:
 def write_episode_recording(
     path: str | Path,
     result: EpisodeResult,
-    layout: dict[str, Any],
-    dt: float,
+    env: EnvSpec,
     success_radius: float = 0.5,
 ) -> None:
-    """Write one episode's recording to `path` (atomically) with the deploy blueprint."""
+    """Write one episode's recording to `path` (atomically) with the deploy blueprint: the maze
+    `env.layout`, positions = the state dims `env.goal_dims`, time in steps of `env.dt`."""
+    pos, dt = list(env.goal_dims), env.dt
     rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_name(result))
     with atomic_path(path) as tmp:
-        rec.save(tmp, default_blueprint=deploy_blueprint(layout))
+        rec.save(tmp, default_blueprint=deploy_blueprint(env.layout))
         rec.send_recording_name(recording_name(result))
-        log_maze(rec, layout)
-        _log_task(rec, result, success_radius)
-        rec.log("summary", rr.TextDocument(_summary(result, dt)), static=True)
-        _log_agent(rec, result, dt, success_radius)
-        _log_plans(rec, result, dt)
+        log_maze(rec, env.layout)
+        _log_task(rec, result, pos, success_radius)
+        rec.log("summary", rr.TextDocument(_summary(result, pos, dt)), static=True)
+        _log_agent(rec, result, pos, dt, success_radius)
+        _log_plans(rec, result, pos, dt)
         rec.flush()
         rec.disconnect()

@@ -8,13 +8,13 @@ single-step rollouts also play back on the `step` and `sim_time` timelines.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from pipeline.evaluation.validate import ModeResult, Validation, position_dims
+from pipeline.envs.spec import EnvSpec
+from pipeline.evaluation.open_loop import ModeResult, OpenLoopResult
 from pipeline.io import atomic_path
 from pipeline.viz.maze import log_maze
 
@@ -68,27 +68,21 @@ def _log_start(
         )
 
 
-def write_recording(
-    path: str | Path,
-    v: Validation,
-    layout: dict[str, Any],
-    state_names: list[str],
-    control_period: float,
-    n_starts: int,
-) -> None:
-    """Write `path` (.rrd) with the first `n_starts` start states of every mode, atomically."""
-    pos = position_dims(state_names)
+def write_recording(path: str | Path, v: OpenLoopResult, spec: EnvSpec, n_starts: int) -> None:
+    """Write `path` (.rrd) with the first `n_starts` start states of every mode, atomically;
+    positions are the state dims `spec.goal_dims`, over the maze `spec.layout`."""
+    pos = list(spec.goal_dims)
     n = min(n_starts, len(v.starts))
     rec = rr.RecordingStream("oposm_validate", recording_id="oposm-validate")
     with atomic_path(path) as tmp:
         rec.save(tmp)
-        log_maze(rec, layout)
+        log_maze(rec, spec.layout)
         views = []
         for mode, result in v.modes.items():
             for i in range(n):
                 base = f"{mode}/start_{i}"
                 rows = slice(i * v.repeats, (i + 1) * v.repeats)
-                _log_start(rec, base, result, rows, pos, control_period)
+                _log_start(rec, base, result, rows, pos, spec.dt)
                 views.append(
                     rrb.Spatial2DView(name=base, origin="/", contents=["/maze/**", f"/{base}/**"])
                 )
