@@ -389,5 +389,66 @@ def bench_plan(
         typer.echo(f"{name:32s} {value:,.4f}")
 
 
+expert_app = typer.Typer(
+    help="Learned locomotion experts (the ant that drives OGBench-style ant-maze data).",
+    no_args_is_help=True,
+)
+app.add_typer(expert_app, name="expert")
+RobotArg = Annotated[str, typer.Argument(help="Robot: ant.")]
+ExpertParamsOption = Annotated[
+    Path | None, typer.Option("--params", "-p", help="Default: experts/<robot>/params.yaml.")
+]
+
+
+@expert_app.command("train")
+@_user_errors
+def expert_train(
+    robot: RobotArg,
+    params: ExpertParamsOption = None,
+    set_: SetOption = None,
+    data: DataOption = Path("data"),
+    ship: Annotated[bool, typer.Option(help="Ship the finished actor to experts/<robot>/.")] = True,
+) -> None:
+    """SAC on OGBench's direction task; after a kill, rerun the same command to resume.
+
+    Hours on 2 CPU cores. Checkpoints in data/experts/<robot>/; the finished actor goes to
+    experts/<robot>/actor.safetensors + actor.json, checked (`oposm expert check`)."""
+    from pipeline.expert_config import check_robot, default_params_path, load_expert_params
+    from stages import expert as stage
+
+    _setup_logging()
+    path = params or default_params_path(check_robot(robot))
+    p = load_expert_params(path, set_)
+    out = stage.scratch_dir(robot, data)
+    typer.echo(stage.train(p, robot, out, stage.ship_dir(robot) if ship else None, path))
+
+
+@expert_app.command("check")
+@_user_errors
+def expert_check(
+    robot: RobotArg,
+    actor: Annotated[
+        Path | None, typer.Option(help="Actor .safetensors (default: the shipped one).")
+    ] = None,
+    params: ExpertParamsOption = None,
+    set_: SetOption = None,
+    data: DataOption = Path("data"),
+) -> None:
+    """Speed along the command, and success on OGBench's maze tasks driven by the BFS oracle.
+
+    Writes data/experts/<robot>/check.json and the actor JSON's `quality` entry."""
+    from pipeline.evaluation.ant_expert import summary_lines
+    from pipeline.expert_config import check_robot, default_params_path, load_expert_params
+    from stages import expert as stage
+
+    _setup_logging()
+    p = load_expert_params(params or default_params_path(check_robot(robot)), set_)
+    path = actor or stage.ship_dir(robot) / "actor.safetensors"
+    report = stage.scratch_dir(robot, data) / "check.json"
+    quality = stage.check(p, robot, path, report)
+    typer.echo(f"actor {path} (step {quality['actor_steps']}); report {report}")
+    typer.echo("\n".join(summary_lines(quality)))
+
+
 if __name__ == "__main__":
     app()

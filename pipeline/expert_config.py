@@ -1,0 +1,131 @@
+"""Typed params of the learned locomotion experts (`oposm expert train|check ROBOT`).
+
+The expert has its own params file next to the weights it produces (`experts/<robot>/params.yaml`),
+not a section of `params.yaml`: the main job never retrains it, and the file that produced a
+shipped actor stays beside it. Same rules as `params.yaml`: unknown keys and bad values are errors
+that name the key, and `section.key=value` overrides apply for one run.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+import yaml
+from pydantic import Field, ValidationError
+
+from pipeline.config import _Section, apply_overrides
+from pipeline.errors import UserError
+
+ROBOTS = ("ant",)
+
+
+class SACParams(_Section):
+    """`sac`: soft actor-critic on the direction task (OGBench's ant expert recipe).
+
+    OGBench trains its ant expert with SAC on `online-ant-v0` in `GymXYWrapper` for 400k steps
+    (`data_gen_scripts/commands.sh`, `impls/agents/sac.py`); the defaults are its values.
+    """
+
+    total_steps: int = Field(400_000, ge=1, description="Environment steps in total (OGBench).")
+    learning_starts: int = Field(
+        10_000, ge=0, description="Steps of uniformly random actions before updates (OGBench)."
+    )
+    buffer_size: int = Field(
+        400_000,
+        ge=1,
+        description="Replay capacity in transitions; >= total_steps keeps every transition, "
+        "as OGBench's 1M buffer does for its 400k steps.",
+    )
+    batch_size: int = Field(256, ge=1, description="Transitions per gradient step (OGBench).")
+    learning_rate: float = Field(1e-4, gt=0, description="Adam lr of actor, critics, alpha.")
+    gamma: float = Field(0.99, gt=0, le=1, description="Discount (OGBench).")
+    tau: float = Field(0.005, gt=0, le=1, description="Polyak rate of the target critics.")
+    hidden: list[int] = Field(
+        default_factory=lambda: [256, 256],
+        min_length=1,
+        description="Hidden widths of the actor and of each critic (OGBench: 256 x 256).",
+    )
+    activation: Literal["gelu", "relu"] = Field(
+        "gelu", description="Hidden activation (OGBench's MLPs: gelu; SB3's default: relu)."
+    )
+    target_entropy_per_dim: float = Field(
+        0.5, ge=0, description="Target entropy = -this * action_dim (OGBench: -0.5 |A|)."
+    )
+    train_freq: int = Field(1, ge=1, description="Environment steps between updates.")
+    gradient_steps: int = Field(1, ge=1, description="Gradient steps per update.")
+    resample_interval: int = Field(
+        100, ge=1, description="Steps between new random command directions (GymXYWrapper)."
+    )
+    max_episode_steps: int = Field(1000, ge=1, description="Episode length (online-ant-v0).")
+    checkpoint_every: int = Field(
+        10_000, ge=1, description="Steps between resume checkpoints (and actor exports)."
+    )
+    log_every: int = Field(1000, ge=1, description="Steps between progress log lines.")
+    seed: int = Field(0, description="Seed of the networks, the exploration and the directions.")
+    threads: int = Field(1, ge=1, description="Torch CPU threads (1: fastest on shared cores).")
+    device: Literal["auto", "cpu", "cuda"] = Field(
+        "cpu", description="Torch device; small networks train fastest on CPU."
+    )
+
+
+class ExpertCheckParams(_Section):
+    """`check`: the trained actor's quality, deterministic (tanh of the mean), no action noise."""
+
+    speed_episodes: int = Field(
+        10, ge=1, description="Direction-task episodes (random directions) for the speed."
+    )
+    mazes: list[Literal["antmaze-medium-v0", "antmaze-large-v0", "antmaze-giant-v0"]] = Field(
+        default_factory=lambda: ["antmaze-medium-v0", "antmaze-large-v0"],
+        description="OGBench mazes whose five evaluation tasks the waypoint navigator runs.",
+    )
+    episodes_per_task: int = Field(
+        10, ge=1, description="Episodes per OGBench task (OGBench reports 50)."
+    )
+    max_episode_steps: int = Field(1000, ge=1, description="Step limit per maze episode (OGBench).")
+    seed: int = Field(0, description="Seed of directions, start noise and goal noise.")
+
+
+class AntExpertParams(_Section):
+    """All of `experts/ant/params.yaml`."""
+
+    sac: SACParams = Field(default_factory=SACParams)
+    check: ExpertCheckParams = Field(default_factory=ExpertCheckParams)
+
+
+def default_params_path(robot: str) -> Path:
+    """`experts/<robot>/params.yaml`, relative to the project root."""
+    return Path("experts") / robot / "params.yaml"
+
+
+def check_robot(robot: str) -> str:
+    if robot not in ROBOTS:
+        raise UserError(f"unknown robot '{robot}'; supported: {', '.join(ROBOTS)}")
+    return robot
+
+
+def load_expert_params(path: str | Path, overrides: list[str] | None = None) -> AntExpertParams:
+    """Load and validate an expert params file, applying `section.key=value` overrides.
+
+    Raises:
+        UserError: the file is missing or not YAML, a key is unknown or a value is bad.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise UserError(f"expert params file {path} not found; run from the project root")
+    try:
+        raw = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise UserError(f"{path} is not valid YAML: {str(exc).splitlines()[0]}") from exc
+    if not isinstance(raw, dict):
+        raise UserError(f"{path} must be a mapping of sections (sac:, check:)")
+    raw = apply_overrides(raw, overrides or [])
+    try:
+        return AntExpertParams.model_validate(raw)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        key = ".".join(str(p) for p in first["loc"]) or "<root>"
+        if first["type"] == "extra_forbidden":
+            raise UserError(f"{path}: unknown key '{key}'") from exc
+        got = first.get("input")
+        raise UserError(f"{path}: bad value for '{key}': {first['msg']}, got {got!r}") from exc
