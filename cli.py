@@ -8,9 +8,13 @@ only, and calls the matching `stages.<name>.run`. `dvc repro` runs the same comm
 from __future__ import annotations
 
 import functools
+import importlib
 import logging
+import os
+import re
 import sys
 from collections.abc import Callable
+from inspect import cleandoc
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -50,27 +54,65 @@ DataOption = Annotated[
 ]
 
 
+# Loggers whose INFO lines the CLI shows; third-party libraries only speak from WARNING up (e.g.
+# `datasets` logs "JAX version ... available" at INFO on every LeRobot import).
+_OUR_LOGGERS = ("pipeline", "stages", "bench", "cli")
+log = logging.getLogger("cli")
+
+
+def _close_progress_bars() -> None:
+    """End any open tqdm bar, so that what is printed next starts on its own line."""
+    std = sys.modules.get("tqdm.std")
+    for bar in list(getattr(getattr(std, "tqdm", None), "_instances", ())):
+        bar.close()
+
+
+def _path_for_user(filename: str | os.PathLike) -> str:
+    """The file a user asked for, for the hidden temporary (`.tmp-<name>.<random>`) or moved-aside
+    (`.old-<name>.<pid>`) names that atomic writes use next to it."""
+    path = Path(filename)
+    hidden = re.fullmatch(r"\.(?:tmp|old)-(.+)\.[^.]+", path.name)
+    return str(path.with_name(hidden.group(1)) if hidden else path)
+
+
+def _os_error_message(exc: OSError) -> str:
+    """'<path>: <why>' for an `OSError` (read-only or full disk, missing permission, ...)."""
+    why = exc.strerror or str(exc)
+    if exc.filename is None:
+        return why
+    return f"{_path_for_user(exc.filename)}: {why}"
+
+
+def _fail(message: str, status: int = 1) -> None:
+    _close_progress_bars()
+    typer.secho(message, fg=typer.colors.RED if status == 1 else None, err=True)
+    raise typer.Exit(status)
+
+
 def _user_errors(fn: Callable[..., Any]) -> Callable[..., Any]:
-    """Turn a `UserError` into one line on stderr and exit status 1 (no traceback)."""
+    """Turn a `UserError` or an `OSError` into one line on stderr and exit status 1 (no
+    traceback)."""
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         try:
             return fn(*args, **kwargs)
         except UserError as exc:
-            typer.secho(f"error: {exc}", fg=typer.colors.RED, err=True)
-            raise typer.Exit(1) from None
+            _fail(f"error: {exc}")
+        except OSError as exc:
+            _fail(f"error: {_os_error_message(exc)}")
         except KeyboardInterrupt:
-            typer.secho("interrupted; no partial output was kept", err=True)
-            raise typer.Exit(130) from None
+            _fail("interrupted; no partial output was kept", status=130)
 
     return wrapper
 
 
 def _setup_logging() -> None:
     logging.basicConfig(
-        level=logging.INFO, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr
+        level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr
     )
+    for name in _OUR_LOGGERS:
+        logging.getLogger(name).setLevel(logging.INFO)
 
 
 def _load(params: Path, overrides: list[str] | None) -> Params:
@@ -80,51 +122,69 @@ def _load(params: Path, overrides: list[str] | None) -> Params:
     return load_params(params, overrides or [])
 
 
-@app.command()
-@_user_errors
-def ingest(
-    params: ParamsOption = Path("params.yaml"),
-    set_: SetOption = None,
-    data: DataOption = Path("data"),
+def _print_numbers(numbers: dict[str, float], width: int = 28, digits: int = 2) -> None:
+    for name, value in numbers.items():
+        typer.echo(f"{name:{width}s} {value:,.{digits}f}")
+
+
+def _deploy_summary(report: dict[str, Any]) -> str:
+    from pipeline.evaluation.report import format_summary
+
+    return format_summary(report)
+
+
+def _stage_command(
+    name: str,
+    doc: str,
+    announce: str | None = None,
+    show: Callable[[Any], str] | None = None,
 ) -> None:
+    """Register `oposm <name>`: load the params (with --set overrides), run `stages.<name>.run`
+    on the data root, print `show(result)` if given.
+
+    Args:
+        doc: The command's help (first line: the summary in `oposm --help`).
+        announce: Logged before the stage starts, for stages that are silent for a while first.
+    """
+
+    def command(
+        params: ParamsOption = Path("params.yaml"),
+        set_: SetOption = None,
+        data: DataOption = Path("data"),
+    ) -> None:
+        from pipeline.paths import Paths
+
+        p = _load(params, set_)
+        if announce:
+            log.info(announce)
+        result = importlib.import_module(f"stages.{name}").run(p, Paths(data))
+        if show is not None:
+            typer.echo(show(result))
+
+    command.__name__ = command.__qualname__ = name
+    app.command(name, help=cleandoc(doc))(_user_errors(command))
+
+
+_stage_command(
+    "ingest",
     """Record demonstrations into data/demos/<ingest.name>.mcap.
 
     With `ingest.source: maze` a scripted expert (D4RL's maze2d waypoint controller) drives a
     gymnasium-robotics PointMaze for `ingest.episodes` x `ingest.episode_steps` steps. With
     `lerobot`, `d4rl` or `minari` an existing dataset is imported (settings in `ingest.lerobot`,
     `ingest.d4rl`, `ingest.minari`), e.g. `-S ingest.source=d4rl -S ingest.d4rl.path=FILE.hdf5`.
-    """
-    from pipeline.paths import Paths
-    from stages import ingest as stage
-
-    stage.run(_load(params, set_), Paths(data))
-
-
-@app.command()
-@_user_errors
-def segment(
-    params: ParamsOption = Path("params.yaml"),
-    set_: SetOption = None,
-    data: DataOption = Path("data"),
-) -> None:
+    """,
+)
+_stage_command(
+    "segment",
     """Cut the MCAP dataset into windows of `segment.window` states, split by episode.
 
     Writes data/segments/<ingest.name>/ (episodes stored once + window index + train-only
     normalization statistics) and data/reports/segment.json.
-    """
-    from pipeline.paths import Paths
-    from stages import segment as stage
-
-    stage.run(_load(params, set_), Paths(data))
-
-
-@app.command()
-@_user_errors
-def train(
-    params: ParamsOption = Path("params.yaml"),
-    set_: SetOption = None,
-    data: DataOption = Path("data"),
-) -> None:
+    """,
+)
+_stage_command(
+    "train",
     """Learn skills and the temporally abstract world model from the segments (EM, paper §2.1).
 
     `train.method: em` runs the paper's EM (an E-step on the posterior, then an M-step on
@@ -132,38 +192,19 @@ def train(
     validation s_T NLL in data/models/<ingest.name>/ and resumes a killed run from its last
     state. Metrics go to data/reports/train/ (dvclive). Multi-process:
     `accelerate launch --num_processes 2 cli.py train`.
-    """
-    from pipeline.paths import Paths
-    from stages import train as stage
-
-    stage.run(_load(params, set_), Paths(data))
-
-
-@app.command()
-@_user_errors
-def dynamics(
-    params: ParamsOption = Path("params.yaml"),
-    set_: SetOption = None,
-    data: DataOption = Path("data"),
-) -> None:
+    """,
+    announce="train: loading PyTorch, Accelerate, dvclive and the segments (a few seconds)",
+)
+_stage_command(
+    "dynamics",
     """Train the single-step model p(s_t+1 | s_t, a_t), the paper's low-level baseline.
 
     Gaussian MLP on the train split's transitions; writes data/models/<ingest.name>-dynamics/
     and data/reports/dynamics.json. `oposm validate` compares it with the skill world model.
-    """
-    from pipeline.paths import Paths
-    from stages import dynamics as stage
-
-    stage.run(_load(params, set_), Paths(data))
-
-
-@app.command()
-@_user_errors
-def validate(
-    params: ParamsOption = Path("params.yaml"),
-    set_: SetOption = None,
-    data: DataOption = Path("data"),
-) -> None:
+    """,
+)
+_stage_command(
+    "validate",
     """Check the world model against held-out open-loop rollouts in MuJoCo (paper §4.1, fig. 4).
 
     From test-split start states restored exactly in the simulator, executes sequences of
@@ -172,20 +213,10 @@ def validate(
     (`oposm dynamics`) rolled forward. Writes data/reports/validate.json (errors, NLL,
     calibration, wall crossings per horizon), data/reports/validate/*.csv (plots) and
     data/recordings/validate.rrd (open with `rerun`).
-    """
-    from pipeline.paths import Paths
-    from stages import validate as stage
-
-    stage.run(_load(params, set_), Paths(data))
-
-
-@app.command()
-@_user_errors
-def deploy(
-    params: ParamsOption = Path("params.yaml"),
-    set_: SetOption = None,
-    data: DataOption = Path("data"),
-) -> None:
+    """,
+)
+_stage_command(
+    "deploy",
     """Plan skill sequences in MuJoCo for new goals and report success (paper §3, §4.2).
 
     Model-predictive control: CEM over `deploy.planner.horizon` whitened skills, rolled forward
@@ -194,12 +225,9 @@ def deploy(
     training data), corners (D4RL's opposite corners), goal (deploy.goal). Writes
     data/reports/deploy.json (success with 95 % Wilson intervals, steps, planning latency),
     data/reports/deploy/episodes.json and data/recordings/deploy/*.rrd (`oposm view`).
-    """
-    from pipeline.evaluation.report import format_summary
-    from pipeline.paths import Paths
-    from stages import deploy as stage
-
-    typer.echo(format_summary(stage.run(_load(params, set_), Paths(data))))
+    """,
+    show=_deploy_summary,
+)
 
 
 @app.command()
@@ -230,9 +258,20 @@ def view(
             raise UserError(f"no recordings at {path}; run `oposm deploy` first")
         files += found
     command = [sys.executable, "-m", "rerun", *(["--web-viewer"] if web else []), *map(str, files)]
+    if not (web or dry_run) and _no_display():
+        raise UserError(
+            "no display for the native viewer (DISPLAY and WAYLAND_DISPLAY are unset); "
+            "use `oposm view --web` and open the address it prints in a browser"
+        )
     typer.echo(" ".join(command))
     if not dry_run:
         raise typer.Exit(subprocess.run(command).returncode)
+
+
+def _no_display() -> bool:
+    """True on Linux without an X11 or Wayland display (the native viewer cannot open)."""
+    has = os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
+    return sys.platform.startswith("linux") and not has
 
 
 @app.command()
@@ -282,10 +321,9 @@ def bench_data(
     set_: SetOption = None,
 ) -> None:
     """Ingest (generate + write + check) and segment throughput, MCAP bytes/step, segment memory."""
-    from pipeline.bench import bench_data as run
+    from bench.data import bench_data as run
 
-    for name, value in run(_load(params, set_), steps).items():
-        typer.echo(f"{name:28s} {value:,.2f}")
+    _print_numbers(run(_load(params, set_), steps))
 
 
 @bench_app.command("import")
@@ -300,15 +338,14 @@ def bench_import(
     set_: SetOption = None,
 ) -> None:
     """Import throughput (frames/s) per source, on data written by each source's own library."""
-    from pipeline.bench import IMPORT_SOURCES
-    from pipeline.bench import bench_import as run
+    from bench.data import IMPORT_SOURCES
+    from bench.data import bench_import as run
 
     chosen = tuple(source or IMPORT_SOURCES)
     unknown = sorted(set(chosen) - set(IMPORT_SOURCES))
     if unknown:
         raise UserError(f"unknown source {unknown[0]!r}; use {', '.join(IMPORT_SOURCES)}")
-    for name, value in run(_load(params, set_), frames, chosen).items():
-        typer.echo(f"{name:28s} {value:,.2f}")
+    _print_numbers(run(_load(params, set_), frames, chosen))
 
 
 export_app = typer.Typer(
@@ -356,17 +393,10 @@ def bench_train(
 
     Needs the segments (`oposm segment`). Compare configs with -p params-paper.yaml.
     """
-    from pipeline.devices import resolve_device
+    from bench.train import bench_train as run
     from pipeline.paths import Paths
-    from pipeline.segments import load_segments
-    from pipeline.training.bench import bench_train as run
 
-    p = _load(params, set_)
-    device = resolve_device(p.train.device, "train.device")
-    segments = load_segments(Paths(data).segments(p.ingest.name))
-    typer.echo(f"device {device}, method {p.train.method}, z {p.train.z_dim}, h {p.train.hidden}")
-    for name, value in run(p.train, segments, steps, device).items():
-        typer.echo(f"{name:28s} {value:,.2f}")
+    _print_numbers(run(_load(params, set_), Paths(data), steps))
 
 
 @bench_app.command("plan")
@@ -381,12 +411,11 @@ def bench_plan(
 ) -> None:
     """Planning latency per replan (one env) and plans/s (--envs at once), for deploy.planner
     and the paper's table 14 params. Needs a trained model (`oposm train`)."""
-    from pipeline.bench import bench_plan as run
+    from bench.plan import bench_plan as run
     from pipeline.paths import Paths
 
     p = _load(params, set_)
-    for name, value in run(p, Paths(data), envs, repeats, batch_repeats).items():
-        typer.echo(f"{name:32s} {value:,.4f}")
+    _print_numbers(run(p, Paths(data), envs, repeats, batch_repeats), width=32, digits=4)
 
 
 expert_app = typer.Typer(

@@ -18,12 +18,14 @@ def format_summary(report: dict[str, Any]) -> str:
     for task in report["tasks"]:
         t = report[task]
         steps = t["steps_to_goal"]["p50"]
+        reached = "no episode reached the goal"
+        if steps is not None:
+            reached = f"median {int(steps)} steps to goal"
         lines.append(
             f"  {task:12s} success {t['successes']}/{t['episodes']} = {_pct(t['success_rate'])} "
             f"[95 % CI {_pct(t['success_ci95_low'])} - {_pct(t['success_ci95_high'])}] "
             f"within {report['success_radius']:g} m; {_pct(t['success_rate_r045'])} within 0.45 m; "
-            f"median {steps if steps is None else int(steps)} steps to goal"
-            + (f"; {t['errors']} failed episodes" if t["errors"] else "")
+            f"{reached}" + (f"; {t['errors']} failed episodes" if t["errors"] else "")
         )
     p = report["planning"]
     lat = p["call_latency_s"]

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import itertools
 import json
-import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -27,8 +26,6 @@ from pipeline.recording import iter_episodes, read_info, summarize
 from pipeline.recording.metadata import encode_info
 from pipeline.sources.common import with_progress
 from pipeline.sources.lerobot_import import GOAL_FEATURE, PHYSICS_FEATURE, SIDECAR
-
-log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -154,7 +151,4 @@ def export_lerobot(
     finally:
         if bars:
             datasets.enable_progress_bars()
-    log.info(
-        "wrote LeRobot dataset %s (%s): %d episodes, %d frames", root, repo_id, episodes, frames
-    )
     return ExportSummary(root, repo_id, episodes, frames, fps)

@@ -1,22 +1,39 @@
-"""Training throughput benchmark (`oposm bench train`): EM steps/s and sub-trajectories/s."""
+"""Training benchmark (`oposm bench train`): EM (or VI) steps/s and sub-trajectories/s."""
 
 from __future__ import annotations
 
+import logging
 import time
 
 import torch
 
-from pipeline.config import TrainParams
+from pipeline.config import Params
+from pipeline.devices import resolve_device
 from pipeline.model import SkillModel, SkillModelConfig
-from pipeline.segments import Segments
+from pipeline.paths import Paths
+from pipeline.segments import load_segments
 from pipeline.training.data import WindowSampler
 from pipeline.training.updaters import make_updater
 
+log = logging.getLogger(__name__)
 
-def bench_train(
-    cfg: TrainParams, segments: Segments, steps: int, device: torch.device, warmup: int = 5
-) -> dict[str, float]:
-    """Time `steps` update steps (after `warmup`) of `cfg.method` at `cfg`'s model size."""
+
+def bench_train(params: Params, paths: Paths, steps: int, warmup: int = 5) -> dict[str, float]:
+    """Time `steps` update steps (after `warmup`) of `train.method` at the train params' model
+    size, on the segments of `ingest.name` (`oposm segment`)."""
+    cfg = params.train
+    device = resolve_device(cfg.device, "train.device")
+    segments = load_segments(paths.segments(params.ingest.name))
+    log.info(
+        "timing %d %s steps (after %d warm-up) on %s: z %d, hidden %d, batch %d",
+        steps,
+        cfg.method,
+        warmup,
+        device,
+        cfg.z_dim,
+        cfg.hidden,
+        cfg.batch_size,
+    )
     torch.manual_seed(cfg.seed)
     config = SkillModelConfig(
         segments.info.state_dim,
