@@ -1,5 +1,6 @@
 """The direction-commanded ant expert: SAC, kill and resume, actor export and loading, check."""
 
+import fcntl
 import importlib
 import os
 import pickle
@@ -97,11 +98,29 @@ def test_killed_run_resumes_from_its_last_checkpoint(tmp_path):
         train_direction_expert(tiny(total_steps=200, learning_rate=3e-4), tmp_path)
 
 
+def test_a_kill_during_a_checkpoint_write_loses_nothing(tmp_path):
+    train_direction_expert(tiny(total_steps=100), tmp_path)
+    # Killed between `resume` -> `.old-resume.<pid>` and `.tmp-resume.<x>` -> `resume`:
+    resume_dir(tmp_path).rename(tmp_path / ".old-resume.4242")
+    (tmp_path / ".tmp-resume.abc").mkdir()
+    watch = _Watch()
+    assert train_direction_expert(tiny(), tmp_path, callbacks=[watch]).steps == 150
+    assert watch.steps == 100
+    assert sorted(p.name for p in tmp_path.glob(".*-resume*")) == []
+
+
+def test_one_trainer_per_folder(tmp_path):
+    with (tmp_path / ".lock").open("w") as held:
+        fcntl.flock(held, fcntl.LOCK_EX)
+        with pytest.raises(UserError, match="another process is training"):
+            train_direction_expert(tiny(), tmp_path)
+
+
 @pytest.mark.slow
 def test_sigkill_mid_run_then_the_same_command_resumes(tmp_path):
     """A real SIGKILL of `oposm expert train` (not an exception), then the same command again."""
     params = tmp_path / "params.yaml"
-    params.write_text(yaml.safe_dump({"sac": tiny(total_steps=3000).model_dump()}))
+    params.write_text(yaml.safe_dump({"sac": tiny(total_steps=800).model_dump()}))
     cmd = [sys.executable, "-m", "cli", "expert", "train", "ant", "-p", str(params)]
     cmd += ["--data", str(tmp_path), "--no-ship"]
     env = os.environ | {"OMP_NUM_THREADS": "1"}
@@ -114,10 +133,10 @@ def test_sigkill_mid_run_then_the_same_command_resumes(tmp_path):
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     killed_at = yaml.safe_load(state.read_text())["steps"]
-    assert 200 <= killed_at < 3000
+    assert 200 <= killed_at < 800
     out = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, check=True)
     assert f"resuming from step {killed_at}" in out.stderr
-    assert yaml.safe_load(state.read_text())["steps"] == 3000
+    assert yaml.safe_load(state.read_text())["steps"] == 800
 
 
 def test_exported_actor_acts_like_sb3_deterministic_predict(tmp_path):

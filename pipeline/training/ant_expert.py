@@ -17,12 +17,15 @@ bit-identical to one that was never interrupted.
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
 import logging
+import shutil
 import sys
 import time
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -237,6 +240,43 @@ def train_direction_expert(
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    with _exclusive(out):
+        return _train(cfg, out, info, callbacks)
+
+
+@contextlib.contextmanager
+def _exclusive(out: Path) -> Iterator[None]:
+    """One trainer per folder (the OS drops the lock when its holder dies, even by SIGKILL)."""
+    with (out / ".lock").open("w") as handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise UserError(
+                f"another process is training in {out}; wait for it or stop it"
+            ) from None
+        _recover(out)
+        yield
+
+
+def _recover(out: Path) -> None:
+    """Tidy what a kill during a checkpoint write left (see `pipeline.io.atomic_dir`).
+
+    Killed between moving the old checkpoint aside and moving the new one in, there is no
+    `resume/` but a complete `.old-resume.*`: put it back. Half-written `.tmp-resume.*` folders
+    (about 200 MB each) are removed.
+    """
+    folder = resume_dir(out)
+    aside = sorted(out.glob(f".old-{folder.name}.*"), key=lambda p: p.stat().st_mtime)
+    if not folder.exists() and aside and (aside[-1] / _STATE).exists():
+        aside[-1].rename(folder)
+        log.info("recovered the checkpoint moved aside by a killed run")
+    for stale in [*out.glob(f".old-{folder.name}.*"), *out.glob(f".tmp-{folder.name}.*")]:
+        shutil.rmtree(stale, ignore_errors=True)
+
+
+def _train(
+    cfg: SACParams, out: Path, info: dict[str, Any] | None, callbacks: Sequence[BaseCallback]
+) -> TrainSummary:
     torch.set_num_threads(cfg.threads)
     env = make_direction_env(cfg.resample_interval, cfg.max_episode_steps)
     folder = resume_dir(out)
