@@ -1,6 +1,7 @@
 """The real CLI through Typer's runner, on a tiny real dataset."""
 
 import json
+from pathlib import Path
 
 import pytest
 import yaml
@@ -120,3 +121,80 @@ def test_ingest_killed_midway_leaves_no_dataset(tmp_path):
     proc.wait()
     assert any(demos.glob(".tmp-*")), "the run was killed before it started writing"
     assert not (demos / "big.mcap").exists()
+
+
+def test_an_os_error_is_one_line_naming_the_path(tmp_path):
+    """A data root that cannot be written (here: a file where a folder must be; read-only and full
+    disks raise the same `OSError`) is one line naming the path, in every stage."""
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(TINY))
+    (tmp_path / "data").write_text("a file, not a folder\n")
+    args = ["ingest", "--params", str(tmp_path / "params.yaml"), "--data", str(tmp_path / "data")]
+    line = _one_line_error(runner.invoke(app, args))
+    assert str(tmp_path / "data") in line and "Not a directory" in line
+
+
+def test_os_errors_name_the_file_asked_for_not_the_hidden_temporary():
+    from cli import _os_error_message
+
+    exc = OSError(28, "No space left on device", "data/demos/.tmp-arm.mcap.yq79p91g")
+    assert _os_error_message(exc) == "data/demos/arm.mcap: No space left on device"
+    exc = OSError(30, "Read-only file system", "data/models/.old-tiny.1234")
+    assert _os_error_message(exc) == "data/models/tiny: Read-only file system"
+
+
+def test_an_error_under_an_open_progress_bar_starts_on_its_own_line(workdir, monkeypatch):
+    from tqdm import tqdm
+
+    from pipeline.errors import UserError
+    from stages import segment
+
+    def fails_midway(params, paths):
+        bar = tqdm(total=10, desc="segment")
+        bar.update(3)
+        raise UserError("something went wrong")
+
+    monkeypatch.setattr(segment, "run", fails_midway)
+    _, common = workdir
+    result = runner.invoke(app, ["segment", *common])
+    assert result.exit_code == 1
+    lines = result.stderr.split("\n")  # a bar redraws with \r: split on newlines only
+    assert "error: something went wrong" in lines, lines
+
+
+def test_third_party_info_logs_stay_out_of_the_output(tmp_path):
+    """`datasets` logs "JAX version ... available" at INFO on every LeRobot import path."""
+    import subprocess
+    import sys
+
+    code = (
+        "import logging, cli; cli._setup_logging(); "
+        "logging.getLogger('datasets').info('JAX version 0.0 available.'); "
+        "logging.getLogger('pipeline.sources').info('ours')"
+    )
+    root = Path(__file__).resolve().parents[1]
+    out = subprocess.run(
+        [sys.executable, "-c", code], cwd=root, capture_output=True, text=True, check=True
+    )
+    assert "ours" in out.stderr and "JAX" not in out.stderr
+
+
+def test_view_without_a_display_suggests_the_web_viewer(tmp_path, monkeypatch):
+    (tmp_path / "x.rrd").write_bytes(b"")
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    monkeypatch.setattr("sys.platform", "linux")
+    assert "--web" in _one_line_error(runner.invoke(app, ["view", str(tmp_path)]))
+
+
+def test_train_says_what_it_does_before_its_first_output(workdir, monkeypatch, caplog):
+    """Importing PyTorch, Accelerate and dvclive takes seconds before the first progress bar."""
+    import logging
+
+    from stages import train
+
+    seen: list[str] = []
+    monkeypatch.setattr(train, "run", lambda params, paths: seen.extend(caplog.messages))
+    _, common = workdir
+    with caplog.at_level(logging.INFO, logger="cli"):
+        assert runner.invoke(app, ["train", *common]).exit_code == 0
+    assert any(m.startswith("train: loading PyTorch") for m in seen), seen

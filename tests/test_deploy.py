@@ -2,6 +2,7 @@
 `oposm deploy` on a tiny trained model with its report and Rerun recordings read back."""
 
 import json
+import shutil
 
 import gymnasium as gym
 import numpy as np
@@ -15,8 +16,9 @@ from cli import app
 from pipeline.envs import BatchSim, PointMazeSpec, make_maze_env
 from pipeline.envs.maze import layout_cell
 from pipeline.errors import UserError
-from pipeline.evaluation.episodes import RunConfig, run_episodes
-from pipeline.evaluation.stats import wilson_interval
+from pipeline.evaluation.episodes import EpisodeResult, RunConfig, run_episodes
+from pipeline.evaluation.report import format_summary
+from pipeline.evaluation.stats import latency_summary, task_summary, wilson_interval
 from pipeline.evaluation.tasks import EpisodeSpec, MazeTasks, check_goal
 from pipeline.model import SkillModel, SkillModelConfig, load_model, save_model
 from pipeline.planning import CEMConfig, PlannerConfig, SkillPlanner
@@ -241,3 +243,33 @@ def test_bad_deploy_inputs_are_one_line_errors(project, tmp_path):
         runner.invoke(app, ["deploy", "--params", str(root / "params.yaml"), "--data", str(data)])
     )
     assert "state_dim 6" in line
+
+
+def test_model_from_another_maze_than_the_segments_is_a_one_line_error(project, tmp_path):
+    """A model trained in UMaze with segments of Medium (same dataset name) must not run: goals
+    drawn from Medium's data would lie inside UMaze's walls."""
+    root, _, _ = project
+    data = tmp_path / "data"
+    shutil.copytree(root / "data/models", data / "models")
+    (data / "segments").mkdir(parents=True)
+    (data / "segments/tiny").symlink_to(root / "data/segments/tiny")
+    config = data / "models/tiny/config.json"
+    meta = json.loads(config.read_text())
+    meta["info"]["env_id"] = "PointMaze_UMaze-v3"
+    config.write_text(json.dumps(meta))
+    args = ["deploy", "--params", str(root / "params.yaml"), "--data", str(data)]
+    line = _one_line_error(runner.invoke(app, args))
+    assert "trained on 'PointMaze_UMaze-v3'" in line and "PointMaze_Medium-v3" in line
+
+
+def test_summary_without_any_success_says_so():
+    spec = EpisodeSpec("corners", 0, np.zeros(4), np.ones(2), 0)
+    failed = EpisodeResult(spec, steps=600, min_distance=2.0, final_distance=2.5)
+    report = {
+        "dataset": "d", "env_id": ENV_ID, "model_step": 10, "episodes": 1, "wall_s": 1.0,
+        "device": "cpu", "tasks": ["corners"], "success_radius": 0.5,
+        "corners": task_summary([failed], 0.01), "planning": latency_summary([]),
+        "recordings": "data/recordings/deploy", "recorded_episodes": 0,
+    }  # fmt: skip
+    line = format_summary(report).splitlines()[1]
+    assert "no episode reached the goal" in line and "None" not in line

@@ -241,3 +241,26 @@ def test_checks_find_problems(episodes: list[Episode], info) -> None:
     report = check_maze_dataset([walled], dataclasses.replace(info, physics_dim=0))
     assert report.n_in_wall == EPISODE_STEPS
     assert any("inside a wall" in p for p in report.problems)
+
+
+def test_batch_sim_runs_a_model_variant_per_slot() -> None:
+    """Slots may run their own `MjModel` (e.g. twice the mass): same start and actions, the
+    variant's slot moves half as far at first, the nominal slots stay identical."""
+    import copy
+
+    import mujoco
+
+    from pipeline.envs import BatchSim, PointMazeSpec
+
+    spec = PointMazeSpec.create("PointMaze_UMaze-v3")
+    heavy = copy.copy(spec.model)
+    heavy.body_mass[1] *= 2
+    mujoco.mj_setConst(heavy, mujoco.MjData(heavy))  # MuJoCo 4 caches the constant mass matrix
+    sim = BatchSim(spec, 3, models=[spec.model, heavy, spec.model])
+    sim.reset(np.tile([0.0, 0.0, 0.0, 0.0], (3, 1)))
+    for _ in range(5):
+        assert sim.step(np.tile([0.5, 0.0], (3, 1))) == {}
+    x = sim.observe()[:, 0]
+    assert x[0] == x[2] and 0 < x[1] < 0.6 * x[0]
+    with pytest.raises(ValueError, match="one model per slot"):
+        BatchSim(spec, 2, models=[heavy])

@@ -113,6 +113,10 @@ def test_rollout_chains_prior_and_tawm_means(model):
         s = model.predict_end(s, zi)[0]
         assert torch.allclose(states[a, k, i + 1], s, atol=1e-5)
     assert torch.equal(states[:, :, 0], s0[:, None].expand(2, 5, 4))
+    # The same skills given directly chain to the same states (validate's posterior mode).
+    again = rollout_skills(model, s0[:, None], z=z)
+    torch.testing.assert_close(again.states, states, rtol=0, atol=0)
+    torch.testing.assert_close(again.mean, states[:, :, 1:], rtol=0, atol=0)
 
 
 def test_batched_planning_matches_planning_each_env_alone(model):

@@ -408,10 +408,13 @@ def _params(tmp_path: Path, ingest: dict) -> list[str]:
 
 
 @pytest.mark.parametrize("source", ["lerobot", "d4rl", "minari"])
-def test_cli_ingest_then_segment(source, tmp_path, request, expert):
+def test_cli_ingest_then_segment(source, tmp_path, request, expert, caplog):
     if source == "lerobot":
-        exported = runner.invoke(app, ["export", "lerobot", str(expert), str(tmp_path / "lr")])
+        with caplog.at_level(logging.INFO):
+            exported = runner.invoke(app, ["export", "lerobot", str(expert), str(tmp_path / "lr")])
         assert exported.exit_code == 0, exported.output
+        said = [*caplog.messages, *exported.output.splitlines()]
+        assert len([line for line in said if "wrote" in line]) == 1, said  # once, not twice
         section = {"root": str(tmp_path / "lr")}
     elif source == "d4rl":
         section = {"path": str(request.getfixturevalue("d4rl_file")[0]), "env_id": ENV_ID}

@@ -38,7 +38,9 @@ class BatchSim:
         spec: The environment.
         n: Number of slots B.
         models: Per-slot model variants `[B]` (sharing the nominal model's state layout); the
-            spec's nominal model in every slot if None.
+            spec's nominal model in every slot if None. A variant made by editing a copy's
+            fields (e.g. `body_mass`) needs `mujoco.mj_setConst` afterwards: MuJoCo caches
+            derived constants such as a constant mass matrix.
     """
 
     def __init__(self, spec: EnvSpec, n: int, models: Sequence[mujoco.MjModel] | None = None):
