@@ -449,7 +449,12 @@ def expert_train(
     path = params or default_params_path(check_robot(robot))
     p = load_expert_params(path, set_)
     out = stage.scratch_dir(robot, data)
-    typer.echo(stage.train(p, robot, out, stage.ship_dir(robot) if ship else None, path))
+    result = stage.train(p, robot, out, stage.ship_dir(robot) if ship else None, path)
+    typer.echo("\n".join(f"{key}: {value}" for key, value in result.items() if key != "check"))
+    if "check" in result:
+        from pipeline.evaluation.ant_expert import summary_lines
+
+        typer.echo("\n".join(summary_lines(result["check"])))
 
 
 @expert_app.command("check")

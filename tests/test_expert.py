@@ -243,3 +243,35 @@ def test_expert_params_file_is_complete_and_matches_the_defaults():
         load_expert_params(path, ["sac.lr=1"])
     result = CliRunner().invoke(app, ["expert", "train", "humanoid"])
     assert result.exit_code == 1 and "unknown robot 'humanoid'" in result.output
+
+
+def test_cli_trains_checks_and_a_finished_run_ships_its_actor(tmp_path):
+    from stages import expert as stage
+
+    params = AntExpertParams(
+        sac=tiny(),
+        check={
+            "speed_episodes": 1,
+            "mazes": ["antmaze-medium-v0"],
+            "episodes_per_task": 1,
+            "max_episode_steps": 5,
+        },
+    )
+    path = tmp_path / "params.yaml"
+    path.write_text(yaml.safe_dump(params.model_dump()))
+    runner = CliRunner()
+    args = ["-p", str(path), "--data", str(tmp_path)]
+    result = runner.invoke(app, ["expert", "train", "ant", *args, "--no-ship"])
+    assert result.exit_code == 0, result.output
+    actor = tmp_path / "experts" / "ant" / ACTOR_FILE
+    result = runner.invoke(app, ["expert", "check", "ant", "--actor", str(actor), *args])
+    assert result.exit_code == 0, result.output
+    assert "antmaze-medium-v0: success 0.0%" in result.output
+    assert read_spec(actor).info["quality"]["speed"]["episodes"] == 1
+
+    summary = stage.train(params, "ant", tmp_path / "run", tmp_path / "ship", path)
+    shipped = read_spec(tmp_path / "ship" / ACTOR_FILE)
+    assert summary["finished"] and summary["shipped"] == str(tmp_path / "ship" / ACTOR_FILE)
+    assert shipped.info["steps"] == 150 and shipped.info["seed"] == 0
+    assert shipped.info["quality"]["mazes"]["antmaze-medium-v0"]["overall"]["episodes"] == 5
+    assert shipped.info["quality"]["actor_steps"] == 150
