@@ -163,7 +163,7 @@ class _Checkpointer(BaseCallback):
         if self.bar is not None:
             self.bar.close()
 
-    def metrics(self) -> dict[str, float]:
+    def metrics(self) -> dict[str, float | str]:
         episodes = list(self.model.ep_info_buffer or [])
         elapsed = time.monotonic() - self.t0
         return {
@@ -173,6 +173,7 @@ class _Checkpointer(BaseCallback):
             "episode_length_mean": float(np.mean([e["l"] for e in episodes])) if episodes else 0.0,
             "ent_coef": float(torch.exp(self.model.log_ent_coef.detach()).item()),
             "steps_per_s": (self.num_timesteps - self.start) / elapsed if elapsed > 0 else 0.0,
+            "utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         }
 
     def _log(self) -> None:
