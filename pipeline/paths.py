@@ -1,4 +1,10 @@
-"""Where each stage reads and writes, relative to one data root (DVC tracks these paths)."""
+"""Where each stage reads and writes, relative to one data root (DVC tracks these paths).
+
+The pipeline's own runs (`dvc repro`, or a stage command on the committed params) write under
+`data/` and their headline metrics under `metrics/` (git-tracked, so experiments compare). An
+ad-hoc run (`oposm deploy -S ...`) gets a `Paths` rooted in `data/runs/<run>/`: it writes only
+there and reads each input from its own run folder when it made one, else from the pipeline's.
+"""
 
 from __future__ import annotations
 
@@ -8,9 +14,36 @@ from pathlib import Path
 
 @dataclass(frozen=True)
 class Paths:
-    """Artifact locations under `root` (default `data/`)."""
+    """Artifact locations under `root` (default `data/`).
+
+    Attributes:
+        root: Where this run writes its artifacts.
+        metrics_root: Where its headline metrics go (`<metrics_root>/<stage>.json`); None:
+            `metrics/` beside `root` (the repository's `metrics/` for the default `data/`).
+        inputs: Another data root to read inputs from when `root` does not hold them (an ad-hoc
+            run reads the pipeline's models and segments); None for the pipeline itself.
+    """
 
     root: Path = Path("data")
+    metrics_root: Path | None = None
+    inputs: Path | None = None
+
+    @classmethod
+    def for_run(cls, data: Path, run: str) -> Paths:
+        """An ad-hoc run: writes under `data/runs/<run>/`, reads missing inputs from `data`."""
+        root = data / "runs" / run
+        return cls(root=root, metrics_root=root / "metrics", inputs=data)
+
+    def existing(self, path: Path) -> Path:
+        """`path` (under `root`) to read, or the same path under `inputs` where `root` lacks it."""
+        if self.inputs is None or path.exists():
+            return path
+        try:
+            relative = path.relative_to(self.root)
+        except ValueError:
+            return path
+        fallback = self.inputs / relative
+        return fallback if fallback.exists() else path
 
     def demos(self, name: str) -> Path:
         """The MCAP dataset `data/demos/<name>.mcap`."""
@@ -21,13 +54,30 @@ class Paths:
         return self.root / "segments" / name
 
     def model(self, name: str) -> Path:
-        """The checkpoint directory `data/models/<name>/` (best model + `resume/` state)."""
+        """The checkpoint directory `data/models/<name>/` (the best model)."""
         return self.root / "models" / name
 
+    def scratch(self, stage: str, key: str) -> Path:
+        """Resumable work of a stage, keyed by what it computes: `data/scratch/<stage>/<key>/`.
+
+        Never a DVC output (DVC deletes outputs before a run, and persisted outputs disable its
+        run cache); safe to delete when nothing runs.
+        """
+        return self.root / "scratch" / stage / key
+
+    def recordings(self, stage: str) -> Path:
+        """A stage's Rerun recordings `data/recordings/<stage>/`."""
+        return self.root / "recordings" / stage
+
     def live(self, stage: str) -> Path:
-        """A stage's dvclive directory `data/reports/<stage>/` (metrics.json, plots/)."""
+        """A stage's detailed reports `data/reports/<stage>/` (dvclive files, CSVs, JSON)."""
         return self.root / "reports" / stage
 
     def report(self, stage: str) -> Path:
-        """A stage's metrics JSON `data/reports/<stage>.json`."""
-        return self.root / "reports" / f"{stage}.json"
+        """A stage's detailed report `data/reports/<stage>/report.json`."""
+        return self.live(stage) / "report.json"
+
+    def metrics(self, stage: str) -> Path:
+        """A stage's headline metrics `metrics/<stage>.json` (what `dvc exp show` compares)."""
+        root = self.metrics_root if self.metrics_root is not None else self.root.parent / "metrics"
+        return root / f"{stage}.json"

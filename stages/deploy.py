@@ -32,6 +32,7 @@ from pipeline.planning import CEMConfig, PlannerConfig, SkillPlanner
 from pipeline.planning.mpc import SkillMPC
 from pipeline.segments import load_segments
 from pipeline.viz.deploy import recording_name, write_episode_recording
+from stages.report import write_report
 
 log = logging.getLogger(__name__)
 
@@ -70,9 +71,9 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
     for task in cfg.tasks:
         check_task(task)
     device = resolve_device(cfg.device, "deploy.device")
-    model_dir = paths.model(name)
+    model_dir = paths.existing(paths.model(name))
     model, meta = load_model(model_dir, device=device)
-    segments = load_segments(paths.segments(name))
+    segments = load_segments(paths.existing(paths.segments(name)))
     info = segments.info
     check_same_environment(info, meta, f"the model in {model_dir}")
     if info.name != meta.get("dataset"):
@@ -101,7 +102,7 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
 
     results: dict[str, list[EpisodeResult]] = {}
     calls: list[PlanCall] = []
-    recordings = paths.root / "recordings" / "deploy"
+    recordings = paths.recordings("deploy")
     recorded = 0
     with atomic_dir(recordings) as tmp:
         for task in cfg.tasks:
@@ -136,5 +137,5 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
     }
     rows = [r.to_json() for task in cfg.tasks for r in results[task]]
     write_json(paths.live("deploy") / "episodes.json", rows)
-    write_json(paths.report("deploy"), report)
+    write_report(paths, "deploy", report)
     return report

@@ -13,30 +13,30 @@ from pathlib import Path
 
 from pipeline.config import Params
 from pipeline.devices import resolve_device, torch_threads
-from pipeline.io import write_json
 from pipeline.model.checkpoint import save_dynamics
 from pipeline.paths import Paths
 from pipeline.segments import load_segments
 from pipeline.training.dynamics import fit_dynamics
+from stages.report import write_report
 
 log = logging.getLogger(__name__)
 
 
 def dynamics_dir(paths: Paths, name: str) -> Path:
-    """`data/models/<name>-dynamics/`: beside the skill model, outside its (persisted) DVC out."""
+    """`data/models/<name>-dynamics/`: beside the skill model, a DVC output of its own."""
     return paths.model(f"{name}-dynamics")
 
 
 def run(params: Params, paths: Paths) -> dict[str, float]:
     """Train on `data/segments/<name>/`; write the checkpoint and the metrics; return them."""
     cfg, name = params.dynamics, params.ingest.name
-    segments = load_segments(paths.segments(name))
+    segments = load_segments(paths.existing(paths.segments(name)))
     device = resolve_device(cfg.device, "dynamics.device")
     with torch_threads(1 if device.type == "cpu" else None):
         model, metrics = fit_dynamics(segments, cfg, device)
     extra = {"dataset": segments.info.name, "info": dataclasses.asdict(segments.info)}
     save_dynamics(model, dynamics_dir(paths, name), extra | {"metrics": metrics})
-    write_json(paths.report("dynamics"), metrics | {"device": str(device)})
+    write_report(paths, "dynamics", metrics | {"device": str(device)})
     log.info(
         "dynamics model: val NLL %.3f, one-step RMSE %.2e after %d steps (%.0f s) -> %s",
         metrics["val_nll"],

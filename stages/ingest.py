@@ -12,9 +12,10 @@ from pipeline.config import Params
 from pipeline.dataset import DatasetInfo, Episode
 from pipeline.envs import check_maze_dataset, dataset_info, generate_episodes, raise_for_problems
 from pipeline.envs.checks import DatasetReport
-from pipeline.io import atomic_path, write_json
+from pipeline.io import atomic_path
 from pipeline.paths import Paths
 from pipeline.recording import iter_episodes, write_dataset
+from stages.report import write_report
 
 log = logging.getLogger(__name__)
 
@@ -83,7 +84,7 @@ def run(params: Params, paths: Paths, progress: bool = True) -> dict[str, float]
         "seconds": elapsed,
         **(report.metrics() if report is not None else {}),
     }
-    write_json(paths.report("ingest"), metrics)
+    write_report(paths, "ingest", metrics)
     log.info(
         "wrote %s (%s): %d episodes, %d steps, %.1f bytes/step, %.0f steps/s%s",
         dest,

@@ -6,18 +6,18 @@ import logging
 import time
 
 from pipeline.config import Params
-from pipeline.io import write_json
 from pipeline.paths import Paths
 from pipeline.recording import iter_episodes, read_info
 from pipeline.segments import Segments, build_segments, save_segments
+from stages.report import write_report
 
 log = logging.getLogger(__name__)
 
 
 def run(params: Params, paths: Paths) -> Segments:
-    """Read `data/demos/<name>.mcap`, write `data/segments/<name>/` and `reports/segment.json`."""
+    """Read `data/demos/<name>.mcap`, write `data/segments/<name>/` and `reports/segment/`."""
     cfg = params.segment
-    source = paths.demos(params.ingest.name)
+    source = paths.existing(paths.demos(params.ingest.name))
     start = time.perf_counter()
     info = read_info(source)
     segments = build_segments(
@@ -31,8 +31,9 @@ def run(params: Params, paths: Paths) -> Segments:
     save_segments(segments, paths.segments(params.ingest.name))
     elapsed = time.perf_counter() - start
     summary = segments.summary()
-    write_json(
-        paths.report("segment"),
+    write_report(
+        paths,
+        "segment",
         {**{f"{s}_{k}": v for s, d in summary.items() for k, v in d.items()}, "seconds": elapsed},
     )
     for split, counts in summary.items():

@@ -7,9 +7,11 @@ own windows, and gradients are averaged across processes before each optimizer s
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
+import shutil
 import time
 from pathlib import Path
 
@@ -18,14 +20,16 @@ import torch
 from pipeline.config import Params, TrainParams
 from pipeline.devices import resolve_device
 from pipeline.errors import UserError
+from pipeline.io import copy_dir, output_lock
 from pipeline.model import SkillModel, SkillModelConfig, save_model
-from pipeline.model.checkpoint import CONFIG_FILE, WEIGHTS_FILE
+from pipeline.model.checkpoint import WEIGHTS_FILE
 from pipeline.paths import Paths
 from pipeline.segments import Segments, load_segments
 from pipeline.training.data import WindowSampler
 from pipeline.training.loop import Budget, Callbacks, Trainer
-from pipeline.training.state import Progress, load_state, save_state
+from pipeline.training.state import Progress, load_state, read_progress, save_state
 from pipeline.training.updaters import make_updater
+from stages.report import write_headline
 
 log = logging.getLogger(__name__)
 
@@ -73,9 +77,14 @@ def _grad_reducer(accelerator):
 
 
 def run(params: Params, paths: Paths, progress_bar: bool = True) -> Progress:
-    """Train on `data/segments/<name>/`; write `data/models/<name>/` and dvclive metrics."""
+    """Train on `data/segments/<name>/`; write `data/models/<name>/` and dvclive metrics.
+
+    The work in progress (resume state, best model so far, dvclive logs) lives in a scratch
+    folder keyed by the params and data (`Paths.scratch`); the outputs are written from it when
+    the run ends, so a killed run resumes, and an old model stays until a new one replaces it.
+    """
     cfg, name = params.train, params.ingest.name
-    segments_dir = paths.segments(name)
+    segments_dir = paths.existing(paths.segments(name))
     segments = load_segments(segments_dir)
     if segments.info.name != name:
         raise UserError(
@@ -86,7 +95,23 @@ def run(params: Params, paths: Paths, progress_bar: bool = True) -> Progress:
         raise UserError(f"{segments_dir} has no validation windows; give segment.split some")
 
     accelerator = _accelerator(cfg.device)
+    with contextlib.ExitStack() as stack:
+        if accelerator.is_main_process:  # one writer per model folder
+            stack.enter_context(output_lock(paths.model(name)))
+        return _train(params, paths, segments, segments_dir, accelerator, progress_bar)
+
+
+def _train(
+    params: Params,
+    paths: Paths,
+    segments: Segments,
+    segments_dir: Path,
+    accelerator,
+    progress_bar: bool,
+) -> Progress:
+    cfg, name = params.train, params.ingest.name
     rank, world = accelerator.process_index, accelerator.num_processes
+    main = accelerator.is_main_process
     torch.manual_seed(cfg.seed)  # identical initialization in every process
     model = SkillModel(model_config(cfg, segments))
     stats = segments.stats
@@ -99,20 +124,23 @@ def run(params: Params, paths: Paths, progress_bar: bool = True) -> Progress:
     val = WindowSampler(segments, "validation", accelerator.device, seed=cfg.seed)
     val_idx = val.fixed_subset(cfg.val_windows, seed=cfg.seed)
 
-    model_dir, resume_dir = paths.model(name), paths.model(name) / "resume"
     fingerprint = _fingerprint(cfg, segments_dir, world)
-    progress = load_state(resume_dir, model, updater.optimizers, train.generator, fingerprint)
+    scratch = paths.scratch("train", f"{name}-{fingerprint[:16]}")
+    resume_dir, best_dir, live_dir = scratch / "resume", scratch / "best", scratch / "live"
+    progress = _resume(cfg, resume_dir, model, updater, train.generator, fingerprint)
     resumed = progress is not None
     if resumed:
         log.info("resuming from step %d (%s)", progress.step, resume_dir)
     else:
+        log.info("training from step 0 (work in progress: %s)", scratch)
         progress = Progress()
         torch.manual_seed(cfg.seed + 1000 * rank)  # each process its own noise from here on
-        if accelerator.is_main_process:  # a best model of other params must not outlive them
-            for stale in (model_dir / WEIGHTS_FILE, model_dir / CONFIG_FILE):
-                stale.unlink(missing_ok=True)
+        if main:  # leftovers of a run killed before its first resume state
+            shutil.rmtree(best_dir, ignore_errors=True)
+            shutil.rmtree(live_dir, ignore_errors=True)
+        accelerator.wait_for_everyone()
 
-    live = _live(paths.live("train"), resumed) if accelerator.is_main_process else None
+    live = _live(live_dir, resumed) if main else None
     extra = {
         "dataset": segments.info.name,
         "info": segments.info.__dict__,
@@ -127,11 +155,11 @@ def run(params: Params, paths: Paths, progress_bar: bool = True) -> Progress:
             live.make_summary()
 
     def save_best(p: Progress) -> None:
-        if accelerator.is_main_process:
-            save_model(model, model_dir, {**extra, "step": p.step, "val_st_nll": p.best_st_nll})
+        if main:
+            save_model(model, best_dir, {**extra, "step": p.step, "val_st_nll": p.best_st_nll})
 
     def save_resume(p: Progress) -> None:
-        if accelerator.is_main_process:
+        if main:
             save_state(resume_dir, model, updater.optimizers, train.generator, p, fingerprint)
         accelerator.wait_for_everyone()
 
@@ -150,7 +178,7 @@ def run(params: Params, paths: Paths, progress_bar: bool = True) -> Progress:
         val_idx,
         budget,
         Callbacks(log_metrics, save_best, save_resume),
-        progress_bar=progress_bar and accelerator.is_main_process,
+        progress_bar=progress_bar and main,
     )
     start_step, started = progress.step, time.monotonic()
     progress = trainer.fit(progress)
@@ -169,15 +197,52 @@ def run(params: Params, paths: Paths, progress_bar: bool = True) -> Progress:
             "device": str(accelerator.device),
         }
         live.end()
+        _publish(paths, name, best_dir, live_dir, live.summary)
     log.info(
         "trained %d steps in %.0f s; best val s_T NLL %.3f at step %d -> %s",
         progress.step,
         progress.elapsed_s,
         progress.best_st_nll,
         progress.best_step,
-        model_dir,
+        paths.model(name),
     )
     return progress
+
+
+def _resume(
+    cfg: TrainParams,
+    resume_dir: Path,
+    model: SkillModel,
+    updater,
+    generator: torch.Generator,
+    fingerprint: str,
+) -> Progress | None:
+    """The saved progress of this exact run, restored into model/optimizers/RNGs; else None.
+
+    A state past `train.max_steps` (the budget was lowered) is not continued: keeping the longer
+    model would not be what the params say, so the run starts over.
+    """
+    saved = read_progress(resume_dir, fingerprint)
+    if saved is None:
+        return None
+    if saved.step > cfg.max_steps:
+        log.info(
+            "the resume state in %s is at step %d, past train.max_steps = %d: starting over",
+            resume_dir,
+            saved.step,
+            cfg.max_steps,
+        )
+        return None
+    return load_state(resume_dir, model, updater.optimizers, generator, fingerprint)
+
+
+def _publish(paths: Paths, name: str, best_dir: Path, live_dir: Path, summary: dict) -> None:
+    """Replace the stage's outputs with the finished run's: model, dvclive reports, headline."""
+    if not (best_dir / WEIGHTS_FILE).exists():
+        raise UserError(f"training ended without a validated model in {best_dir}; raise max_steps")
+    copy_dir(best_dir, paths.model(name))
+    copy_dir(live_dir, paths.live("train"))
+    write_headline(paths, "train", summary)
 
 
 def _check_in_sync(accelerator, model: SkillModel) -> None:

@@ -19,11 +19,12 @@ from pipeline.envs.spec import make_env_spec
 from pipeline.evaluation.compat import check_same_environment
 from pipeline.evaluation.open_loop import run_open_loop
 from pipeline.evaluation.open_loop_metrics import end_position_table, error_table, open_loop_report
-from pipeline.io import atomic_path, write_json
+from pipeline.io import atomic_path
 from pipeline.model.checkpoint import load_dynamics, load_model
 from pipeline.paths import Paths
 from pipeline.segments import load_segments
 from stages.dynamics import dynamics_dir
+from stages.report import write_report
 
 log = logging.getLogger(__name__)
 
@@ -45,14 +46,15 @@ def run(params: Params, paths: Paths) -> dict[str, Any]:
     """Run the validation of `data/models/<name>/` on `data/segments/<name>/`; return the report."""
     started = time.monotonic()
     cfg, name = params.validation, params.ingest.name
-    segments = load_segments(paths.segments(name))
+    segments = load_segments(paths.existing(paths.segments(name)))
     info = segments.info
     spec = make_env_spec(info.env_id, info.env_kwargs)
     device = resolve_device(cfg.device, "validate.device")
-    model, meta = load_model(paths.model(name), device=device)
-    dynamics, dyn_meta = load_dynamics(dynamics_dir(paths, name), device=device)
+    model, meta = load_model(paths.existing(paths.model(name)), device=device)
+    dynamics_path = paths.existing(dynamics_dir(paths, name))
+    dynamics, dyn_meta = load_dynamics(dynamics_path, device=device)
     check_same_environment(info, meta, f"the skill model in {paths.model(name)}")
-    check_same_environment(info, dyn_meta, f"the dynamics model in {dynamics_dir(paths, name)}")
+    check_same_environment(info, dyn_meta, f"the dynamics model in {dynamics_path}")
 
     horizon = int(meta["window"]) - 1
     with torch_threads(1 if device.type == "cpu" else None):
@@ -68,7 +70,7 @@ def run(params: Params, paths: Paths) -> dict[str, Any]:
 
         write_recording(recording_path(paths), result, spec, cfg.record_starts)
     report["timing"]["total_s"] = time.monotonic() - started
-    write_json(paths.report("validate"), report)
+    write_report(paths, "validate", report)
     _log(report)
     return report
 

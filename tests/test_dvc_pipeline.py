@@ -1,5 +1,7 @@
 """The real `dvc repro` of the pipeline, in a temporary copy of the repository, on tiny params."""
 
+import csv
+import io
 import os
 import shutil
 import subprocess
@@ -57,20 +59,42 @@ def _dvc(repo: Path, *args: str) -> str:
     return result.stdout + result.stderr
 
 
-@pytest.mark.slow
-def test_dvc_repro_runs_then_skips_then_reruns_only_what_changed(tmp_path):
+def _git(repo: Path, *args: str) -> str:
+    result = subprocess.run(
+        ["git", "-c", "user.name=t", "-c", "user.email=t@t", *args],
+        cwd=repo,
+        check=True,
+        capture_output=True,
+        text=True,
+    )
+    return result.stdout
+
+
+@pytest.fixture
+def repo(tmp_path) -> Path:
+    """A git copy of the repository on tiny params, with no outputs and no dvc.lock."""
     repo = tmp_path / "repo"
     _copy_repository(repo)
+    shutil.rmtree(repo / "metrics", ignore_errors=True)
     _set_params(repo, TINY)
-    for git in (["init", "-q"], ["add", "-A"], ["commit", "-qm", "copy"]):
-        subprocess.run(
-            ["git", "-c", "user.name=t", "-c", "user.email=t@t", *git], cwd=repo, check=True
-        )
+    _git(repo, "init", "-q")
+    _git(repo, "add", "-A")
+    _git(repo, "commit", "-qm", "copy")
+    return repo
 
+
+def _model_weights(repo: Path) -> bytes:
+    return (repo / "data/models/pointmaze-medium/model.safetensors").read_bytes()
+
+
+@pytest.mark.slow
+def test_dvc_repro_runs_then_skips_then_reruns_only_what_changed(repo):
     first = _dvc(repo, "repro")
     assert "Running stage 'ingest'" in first and "Running stage 'segment'" in first
     assert (repo / "data/segments/pointmaze-medium/segments.json").exists()
     assert "Running stage 'deploy'" in first and "random_goal  success" in first
+    for stage in ("ingest", "segment", "train", "dynamics", "validate", "deploy"):
+        assert (repo / f"metrics/{stage}.json").exists(), stage
 
     second = _dvc(repo, "repro")
     assert "Running stage" not in second
@@ -82,3 +106,74 @@ def test_dvc_repro_runs_then_skips_then_reruns_only_what_changed(tmp_path):
 
     metrics = _dvc(repo, "metrics", "show")
     assert "train_windows" in metrics
+    assert max(len(line) for line in metrics.splitlines()) < 200  # headline metrics only
+
+
+@pytest.mark.slow
+def test_dvc_experiments_compare_and_restore_the_model_from_the_cache(repo):
+    _dvc(repo, "repro")
+    baseline = _model_weights(repo)
+    _git(repo, "add", "dvc.lock", "metrics")
+    _git(repo, "commit", "-qm", "baseline results")
+
+    _dvc(repo, "exp", "run", "-n", "short", "-S", "train.max_steps=10")
+    assert _model_weights(repo) != baseline
+    _dvc(repo, "exp", "run", "-n", "seed1", "-S", "train.seed=1")
+
+    table = _dvc(repo, "exp", "show", "--csv", "--no-fetch")
+    rows = list(csv.DictReader(io.StringIO(table)))
+    by_name = {row["Experiment"] or row["rev"]: row for row in rows}
+
+    def metric(row: dict, name: str) -> str:  # DVC names a column by its shortest unique suffix
+        (column,) = [c for c in row if c == name or c.endswith(f":{name}")]
+        return row[column]
+
+    for name in ("short", "seed1", "workspace"):
+        nll = metric(by_name[name], "best_val_st_nll")
+        assert nll not in ("", "!", "-"), (name, nll)
+        assert metric(by_name[name], "random_goal.success") not in ("", "!", "-")
+    assert metric(by_name["short"], "best_step") == "10"
+    assert metric(by_name["seed1"], "best_val_st_nll") != metric(
+        by_name["short"], "best_val_st_nll"
+    )
+
+    # Back to the first experiment: its model comes from the cache, nothing retrains.
+    _dvc(repo, "exp", "apply", "short")
+    assert "Running stage" not in _dvc(repo, "repro")
+    diff = _dvc(repo, "metrics", "diff", "--md")
+    assert "best_val_st_nll" in diff and "steps" in diff
+
+    # Back to the committed params without their dvc.lock: the run cache restores the model.
+    _git(repo, "checkout", "--", "params.yaml")
+    (repo / "dvc.lock").unlink()
+    again = _dvc(repo, "repro")
+    assert "Running stage 'train'" not in again and "Stage 'train' is cached" in again
+    assert _model_weights(repo) == baseline
+
+
+@pytest.mark.slow
+def test_committed_dvc_lock_matches_params_and_code():
+    """`dvc.lock` records the params and code of the default main job: it cannot go stale."""
+    from dvc.repo import Repo
+
+    lock = yaml.safe_load((ROOT / "dvc.lock").read_text())["stages"]
+    params = yaml.safe_load((ROOT / "params.yaml").read_text())
+    with Repo(str(ROOT)) as dvc_repo:
+        stages = {stage.addressing: stage for stage in dvc_repo.index.stages}
+        assert set(lock) == set(stages), "dvc.lock and dvc.yaml list different stages"
+        for name, stage in stages.items():
+            for section, values in lock[name].get("params", {}).get("params.yaml", {}).items():
+                node = params
+                for part in section.split("."):
+                    node = node[part]
+                assert node == values, f"dvc.lock: {name} params {section} are stale"
+            recorded = {d["path"]: d["md5"] for d in lock[name]["deps"]}
+            for dep in stage.deps:
+                path = dep.def_path
+                if path.startswith("data/"):
+                    continue  # data: checked by `dvc status` where the data is
+                dep.save()
+                assert dep.hash_info.value == recorded[path], (
+                    f"dvc.lock: {name} dep {path} changed since the lock was written; "
+                    "run `uv run dvc repro` and commit dvc.lock"
+                )

@@ -10,14 +10,17 @@ from __future__ import annotations
 
 import json
 import logging
+import pickle  # only for its error type: torch.load(weights_only=True) on a bad file
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
+from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
-from pipeline.io import atomic_dir
+from pipeline.errors import UserError
+from pipeline.io import atomic_dir, recover_dir
 from pipeline.model.skill_model import SkillModel
 
 log = logging.getLogger(__name__)
@@ -57,6 +60,33 @@ def save_state(
         (tmp / "state.json").write_text(json.dumps(meta, indent=2) + "\n")
 
 
+def _corrupt(directory: Path, what: str) -> UserError:
+    return UserError(
+        f"the training resume state in {directory} is unreadable ({what}); delete that folder "
+        "to start over"
+    )
+
+
+def read_progress(directory: Path, fingerprint: str) -> Progress | None:
+    """The progress saved in `directory`, or None if there is none or it is for other params.
+
+    A state written for a different fingerprint (other model config, training params or data)
+    is not an error: that run is simply not continued. An unreadable one is a `UserError`.
+    """
+    recover_dir(directory)
+    meta_path = directory / "state.json"
+    if not meta_path.exists():
+        return None
+    try:
+        meta: dict[str, Any] = json.loads(meta_path.read_text())
+        if meta.get("fingerprint") != fingerprint:
+            log.info("previous training state in %s is for other params; starting over", directory)
+            return None
+        return Progress(**meta["progress"])
+    except (ValueError, KeyError, TypeError) as exc:
+        raise _corrupt(directory, f"state.json: {exc}") from exc
+
+
 def load_state(
     directory: Path,
     model: SkillModel,
@@ -64,25 +94,28 @@ def load_state(
     generator: torch.Generator,
     fingerprint: str,
 ) -> Progress | None:
-    """Restore a previous run's state in place; None if there is none or it is for other params.
-
-    A state written for a different fingerprint (other model config, training params or data)
-    is not an error: that run is simply not continued.
-    """
-    meta_path = directory / "state.json"
-    if not meta_path.exists():
-        return None
-    meta: dict[str, Any] = json.loads(meta_path.read_text())
-    if meta.get("fingerprint") != fingerprint:
-        log.info("previous training state in %s is for other params; starting over", directory)
+    """Restore a previous run's state in place; None if there is none or it is for other params."""
+    progress = read_progress(directory, fingerprint)
+    if progress is None:
         return None
     device = next(model.parameters()).device
-    model.load_state_dict(load_file(directory / "model.safetensors", device=str(device)))
-    optim = torch.load(directory / "optim.pt", weights_only=True, map_location=device)
-    for name, optimizer in optimizers.items():
-        optimizer.load_state_dict(optim["optimizers"][name])
-    torch.set_rng_state(optim["torch_rng"].cpu())
-    generator.set_state(optim["sampler_rng"].cpu())
+    try:
+        model.load_state_dict(load_file(directory / "model.safetensors", device=str(device)))
+        optim = torch.load(directory / "optim.pt", weights_only=True, map_location=device)
+        for name, optimizer in optimizers.items():
+            optimizer.load_state_dict(optim["optimizers"][name])
+        torch.set_rng_state(optim["torch_rng"].cpu())
+        generator.set_state(optim["sampler_rng"].cpu())
+    except (
+        OSError,
+        RuntimeError,
+        ValueError,
+        KeyError,
+        SafetensorError,
+        pickle.UnpicklingError,
+    ) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise _corrupt(directory, first) from exc
     if "cuda_rng" in optim and torch.cuda.is_available():
         torch.cuda.set_rng_state_all([s.cpu() for s in optim["cuda_rng"]])
-    return Progress(**meta["progress"])
+    return progress

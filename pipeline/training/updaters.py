@@ -31,13 +31,20 @@ def _apply(
     reduce_grads: GradReducer,
     grad_clip: float | None,
 ) -> float:
-    """Backprop `loss` into `params` only, reduce, clip, step; return the gradient norm."""
+    """Backprop `loss` into `params` only, reduce, clip, step; return the gradient norm.
+
+    A non-finite gradient norm skips the step (the parameters and Adam moments stay as they
+    were) and is returned, so the loop stops on it with the model still intact.
+    """
     optimizer.zero_grad(set_to_none=True)
     loss.backward(inputs=params)
     reduce_grads(params)
-    norm = torch.nn.utils.clip_grad_norm_(params, grad_clip if grad_clip else float("inf"))
-    optimizer.step()
-    return float(norm)
+    norm = float(torch.nn.utils.clip_grad_norm_(params, grad_clip if grad_clip else float("inf")))
+    if math.isfinite(norm):
+        optimizer.step()
+    else:
+        optimizer.zero_grad(set_to_none=True)
+    return norm
 
 
 class EMUpdater:
@@ -65,6 +72,8 @@ class EMUpdater:
     def e_step(self, batch: WindowBatch) -> dict[str, float]:
         """One Adam step on the posterior (phi) minimizing eq. 15."""
         loss, metrics = e_step_loss(self.model, batch)
+        if not math.isfinite(metrics["e_loss"]):
+            return metrics  # diverged: change nothing, the loop stops on the non-finite loss
         metrics["e_grad_norm"] = _apply(
             loss, self.e_params, self.optimizers["e"], self.reduce_grads, self.grad_clip
         )
@@ -80,7 +89,7 @@ class EMUpdater:
 
     def step(self, batch: WindowBatch) -> dict[str, float]:
         e_metrics = self.e_step(batch)
-        if not math.isfinite(e_metrics["e_loss"]):
+        if not all(math.isfinite(v) for v in e_metrics.values()):
             return e_metrics  # diverged: the loop stops; don't push NaNs into theta, psi, omega
         return e_metrics | self.m_step(batch)
 

@@ -1,0 +1,91 @@
+"""Each stage's report: the detailed JSON under `data/reports/<stage>/`, and its headline.
+
+The headline is the handful of numbers a person compares across runs (`dvc exp show`, `dvc
+metrics diff`): a small flat-ish JSON in `metrics/<stage>.json`, git-tracked so every
+experiment's commit carries it. Everything else stays in the detailed report.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from pipeline.io import write_json
+from pipeline.paths import Paths
+
+Report = dict[str, Any]
+
+
+def _round(value: Any, digits: int = 4) -> Any:
+    return round(value, digits) if isinstance(value, float) else value
+
+
+def _pick(report: Report, keys: list[str]) -> Report:
+    return {k: _round(report[k]) for k in keys if k in report}
+
+
+def _ingest(r: Report) -> Report:
+    return _pick(r, ["episodes", "steps", "goals_per_1000_steps", "n_problems", "seconds"])
+
+
+def _segment(r: Report) -> Report:
+    return _pick(r, ["train_windows", "validation_windows", "test_windows"])
+
+
+def _train(r: Report) -> Report:
+    val = r.get("val", {})
+    return _pick(r, ["best_val_st_nll", "best_step", "steps", "wall_s", "steps_per_s"]) | {
+        f"val_{k}": _round(val[k]) for k in ("st_nll", "st_error", "action_nll") if k in val
+    }
+
+
+def _dynamics(r: Report) -> Report:
+    return _pick(r, ["val_nll", "val_rmse", "wall_s"])
+
+
+def _validate(r: Report) -> Report:
+    """Prior skills (what planning uses): errors at one skill and at the longest horizon."""
+    out: Report = {}
+    horizons = sorted(r.get("prior", {}), key=lambda k: int(k.split("_")[-1]))
+    for key in dict.fromkeys([horizons[0], horizons[-1]] if horizons else []):
+        h = r["prior"][key]
+        out[f"prior_{key}"] = _pick(
+            h, ["tawm_error_mean", "single_step_error_mean", "tawm_nll", "tawm_within_1sigma"]
+        )
+    return out
+
+
+def _deploy(r: Report) -> Report:
+    out: Report = {}
+    for task in r.get("tasks", []):
+        t = r[task]
+        out[task] = {
+            "success": _round(t["success_rate"]),
+            "ci95_low": _round(t["success_ci95_low"]),
+            "ci95_high": _round(t["success_ci95_high"]),
+            "episodes": t["episodes"],
+            "steps_to_goal_p50": _round((t.get("steps_to_goal") or {}).get("p50")),
+        }
+    latency = (r.get("planning") or {}).get("per_env_latency_s") or {}
+    return out | {"plan_s_p50": _round(latency.get("p50")), "wall_s": _round(r.get("wall_s"))}
+
+
+HEADLINES: dict[str, Callable[[Report], Report]] = {
+    "ingest": _ingest,
+    "segment": _segment,
+    "train": _train,
+    "dynamics": _dynamics,
+    "validate": _validate,
+    "deploy": _deploy,
+}
+
+
+def write_report(paths: Paths, stage: str, report: Report) -> None:
+    """Write `report` to `data/reports/<stage>/report.json` and its headline to `metrics/`."""
+    write_json(paths.report(stage), report)
+    write_json(paths.metrics(stage), HEADLINES[stage](report))
+
+
+def write_headline(paths: Paths, stage: str, report: Report) -> None:
+    """Write only the headline of `report` (its details are written elsewhere, e.g. dvclive)."""
+    write_json(paths.metrics(stage), HEADLINES[stage](report))
