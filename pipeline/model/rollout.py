@@ -91,9 +91,11 @@ def rollout_skills(
         x = torch.stack(xs, dim=1) * model.state_std
         return x + model.state_mean if shift else x
 
+    mean = raw(means)
+    chained = mean if generator is None else raw(states)  # the means themselves, unsampled
     return SkillRollout(
         z=torch.stack(skills, dim=1).reshape(*batch, n_skills, z_dim),
-        states=torch.cat([s0[:, None], raw(states)], dim=1).reshape(*batch, n_skills + 1, sd),
-        mean=raw(means).reshape(*batch, n_skills, sd),
+        states=torch.cat([s0[:, None], chained], dim=1).reshape(*batch, n_skills + 1, sd),
+        mean=mean.reshape(*batch, n_skills, sd),
         std=raw(stds, shift=False).reshape(*batch, n_skills, sd),
     )
