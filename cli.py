@@ -427,6 +427,10 @@ RobotArg = Annotated[str, typer.Argument(help="Robot: ant.")]
 ExpertParamsOption = Annotated[
     Path | None, typer.Option("--params", "-p", help="Default: experts/<robot>/params.yaml.")
 ]
+ScratchOption = Annotated[
+    Path | None,
+    typer.Option(help="Checkpoints, logs, reports. Default: ~/.cache/oposm/experts/<robot>."),
+]
 
 
 @expert_app.command("train")
@@ -435,20 +439,21 @@ def expert_train(
     robot: RobotArg,
     params: ExpertParamsOption = None,
     set_: SetOption = None,
-    data: DataOption = Path("data"),
+    scratch: ScratchOption = None,
     ship: Annotated[bool, typer.Option(help="Ship the finished actor to experts/<robot>/.")] = True,
 ) -> None:
     """SAC on OGBench's direction task; after a kill, rerun the same command to resume.
 
-    Hours on 2 CPU cores. Checkpoints in data/experts/<robot>/; the finished actor goes to
-    experts/<robot>/actor.safetensors + actor.json, checked (`oposm expert check`)."""
+    Hours on 2 CPU cores. Checkpoints in the scratch folder (outside the work tree, so that a
+    later session resumes); the finished actor goes to experts/<robot>/actor.safetensors +
+    actor.json, checked (`oposm expert check`)."""
     from pipeline.expert_config import check_robot, default_params_path, load_expert_params
     from stages import expert as stage
 
     _setup_logging()
     path = params or default_params_path(check_robot(robot))
     p = load_expert_params(path, set_)
-    out = stage.scratch_dir(robot, data)
+    out = scratch or stage.scratch_dir(robot)
     result = stage.train(p, robot, out, stage.ship_dir(robot) if ship else None, path)
     typer.echo("\n".join(f"{key}: {value}" for key, value in result.items() if key != "check"))
     if "check" in result:
@@ -466,11 +471,11 @@ def expert_check(
     ] = None,
     params: ExpertParamsOption = None,
     set_: SetOption = None,
-    data: DataOption = Path("data"),
+    scratch: ScratchOption = None,
 ) -> None:
     """Speed along the command, and success on OGBench's maze tasks driven by the BFS oracle.
 
-    Writes data/experts/<robot>/check.json and the actor JSON's `quality` entry."""
+    Writes check.json in the scratch folder and the actor JSON's `quality` entry."""
     from pipeline.evaluation.ant_expert import summary_lines
     from pipeline.expert_config import check_robot, default_params_path, load_expert_params
     from stages import expert as stage
@@ -478,7 +483,7 @@ def expert_check(
     _setup_logging()
     p = load_expert_params(params or default_params_path(check_robot(robot)), set_)
     path = actor or stage.ship_dir(robot) / "actor.safetensors"
-    report = stage.scratch_dir(robot, data) / "check.json"
+    report = (scratch or stage.scratch_dir(robot)) / "check.json"
     quality = stage.check(p, robot, path, report)
     typer.echo(f"actor {path} (step {quality['actor_steps']}); report {report}")
     typer.echo("\n".join(summary_lines(quality)))

@@ -1,6 +1,6 @@
 """Expert stage: train the direction-commanded ant expert (resumable), ship its actor, check it.
 
-`train` runs or resumes SAC in a scratch folder (`data/experts/<robot>/`, git-ignored); when the
+`train` runs or resumes SAC in a scratch folder (`scratch_dir`, outside the work tree); when the
 run reaches `sac.total_steps` it ships the actor to `experts/<robot>/actor.safetensors` +
 `actor.json` (committed, small) and checks it, writing the measured quality into that JSON.
 `check` measures any exported actor (an intermediate one too) and writes a report.
@@ -9,6 +9,7 @@ run reaches `sac.total_steps` it ships the actor to `experts/<robot>/actor.safet
 from __future__ import annotations
 
 import logging
+import os
 import shlex
 import sys
 from pathlib import Path
@@ -22,9 +23,15 @@ from pipeline.io import write_json
 log = logging.getLogger(__name__)
 
 
-def scratch_dir(robot: str, data: Path = Path("data")) -> Path:
-    """`data/experts/<robot>/`: resume checkpoints, the latest actor export, logs, reports."""
-    return data / "experts" / robot
+def scratch_dir(robot: str) -> Path:
+    """`$XDG_CACHE_HOME/oposm/experts/<robot>/` (default `~/.cache/...`): resume checkpoints, the
+    latest actor export, progress log, check report.
+
+    Outside the work tree on purpose: training takes several sessions, and a session may get a
+    freshly laid checkout (without git-ignored `data/`) but the same machine.
+    """
+    cache = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(cache) / "oposm" / "experts" / robot
 
 
 def ship_dir(robot: str) -> Path:

@@ -122,9 +122,9 @@ def test_sigkill_mid_run_then_the_same_command_resumes(tmp_path):
     params = tmp_path / "params.yaml"
     params.write_text(yaml.safe_dump({"sac": tiny(total_steps=800).model_dump()}))
     cmd = [sys.executable, "-m", "cli", "expert", "train", "ant", "-p", str(params)]
-    cmd += ["--data", str(tmp_path), "--no-ship"]
+    cmd += ["--scratch", str(tmp_path), "--no-ship"]
     env = os.environ | {"OMP_NUM_THREADS": "1"}
-    state = tmp_path / "experts" / "ant" / "resume" / "state.json"
+    state = tmp_path / "resume" / "state.json"
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 120
     while not state.exists() or yaml.safe_load(state.read_text())["steps"] < 200:
@@ -260,10 +260,10 @@ def test_cli_trains_checks_and_a_finished_run_ships_its_actor(tmp_path):
     path = tmp_path / "params.yaml"
     path.write_text(yaml.safe_dump(params.model_dump()))
     runner = CliRunner()
-    args = ["-p", str(path), "--data", str(tmp_path)]
+    args = ["-p", str(path), "--scratch", str(tmp_path)]
     result = runner.invoke(app, ["expert", "train", "ant", *args, "--no-ship"])
     assert result.exit_code == 0, result.output
-    actor = tmp_path / "experts" / "ant" / ACTOR_FILE
+    actor = tmp_path / ACTOR_FILE
     result = runner.invoke(app, ["expert", "check", "ant", "--actor", str(actor), *args])
     assert result.exit_code == 0, result.output
     assert "antmaze-medium-v0: success 0.0%" in result.output
