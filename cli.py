@@ -8,6 +8,7 @@ only, and calls the matching `stages.<name>.run`. `dvc repro` runs the same comm
 from __future__ import annotations
 
 import functools
+import hashlib
 import importlib
 import logging
 import os
@@ -50,8 +51,23 @@ SetOption = Annotated[
     ),
 ]
 DataOption = Annotated[
-    Path, typer.Option("--data", help="Data root: demos/, segments/, reports/ live under it.")
+    Path | None,
+    typer.Option(
+        "--data",
+        help="Data root: demos/, segments/, reports/ live under it [default: data].",
+        show_default=False,
+    ),
 ]
+RunOption = Annotated[
+    str | None,
+    typer.Option(
+        "--run",
+        help="Write under data/runs/<RUN>/ (inputs the run did not make come from data/). "
+        "Runs with --set or another --params get a run folder named after them anyway, so "
+        "the pipeline's tracked outputs only change by `dvc repro` or a plain stage command.",
+    ),
+]
+PIPELINE_PARAMS = Path("params.yaml")
 
 
 # Loggers whose INFO lines the CLI shows; third-party libraries only speak from WARNING up (e.g.
@@ -133,6 +149,33 @@ def _deploy_summary(report: dict[str, Any]) -> str:
     return format_summary(report)
 
 
+def _paths(params: Path, overrides: list[str] | None, data: Path | None, run: str | None):
+    """Where a stage command writes: the pipeline's `data/` (and `metrics/`) for the pipeline's
+    own command (as `dvc repro` runs it: default params, no --set), else a run folder.
+
+    An explicit `--data` root is the user's choice of where everything goes and is used as is.
+    """
+    from pipeline.paths import Paths
+
+    if data is not None and run is None:
+        return Paths(data)
+    data = data or Path("data")
+    adhoc = bool(overrides) or params.resolve() != PIPELINE_PARAMS.resolve()
+    if run is None and (not adhoc or os.environ.get("DVC_STAGE")):
+        return Paths(data)
+    if run is None:
+        key = hashlib.sha256(params.read_bytes() + "\0".join(overrides or []).encode())
+        run = f"adhoc-{key.hexdigest()[:8]}"
+        log.info(
+            "--set/--params differ from the pipeline's: this run writes under %s "
+            "(--run NAME names the folder; `dvc repro` owns data/ itself)",
+            data / "runs" / run,
+        )
+    if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._-]*", run):
+        raise UserError(f"--run {run!r}: use letters, digits, '.', '_' and '-' only")
+    return Paths.for_run(data, run)
+
+
 def _stage_command(
     name: str,
     doc: str,
@@ -148,16 +191,16 @@ def _stage_command(
     """
 
     def command(
-        params: ParamsOption = Path("params.yaml"),
+        params: ParamsOption = PIPELINE_PARAMS,
         set_: SetOption = None,
-        data: DataOption = Path("data"),
+        data: DataOption = None,
+        run: RunOption = None,
     ) -> None:
-        from pipeline.paths import Paths
-
         p = _load(params, set_)
+        paths = _paths(params, set_, data, run)
         if announce:
             log.info(announce)
-        result = importlib.import_module(f"stages.{name}").run(p, Paths(data))
+        result = importlib.import_module(f"stages.{name}").run(p, paths)
         if show is not None:
             typer.echo(show(result))
 

@@ -110,6 +110,7 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
             os.replace(path, old)
             os.replace(tmp_path, path)
     finally:
+        recover_dir(path)  # interrupted between the fallback's renames: the old one goes back
         shutil.rmtree(tmp_path, ignore_errors=True)  # after an exchange: the old directory
         shutil.rmtree(old, ignore_errors=True)
 

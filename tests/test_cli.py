@@ -47,9 +47,9 @@ def test_ingest_and_segment_write_their_artifacts(workdir):
     root, _ = workdir
     assert (root / "data/demos/tiny.mcap").stat().st_size > 0
     assert (root / "data/segments/tiny/segments.safetensors").exists()
-    report = json.loads((root / "data/reports/segment.json").read_text())
+    report = json.loads((root / "data/reports/segment/report.json").read_text())
     assert report["train_episodes"] + report["validation_episodes"] + report["test_episodes"] == 6
-    ingest = json.loads((root / "data/reports/ingest.json").read_text())
+    ingest = json.loads((root / "data/reports/ingest/report.json").read_text())
     assert ingest["steps"] == 6 * 150
 
 
@@ -198,3 +198,37 @@ def test_train_says_what_it_does_before_its_first_output(workdir, monkeypatch, c
     with caplog.at_level(logging.INFO, logger="cli"):
         assert runner.invoke(app, ["train", *common]).exit_code == 0
     assert any(m.startswith("train: loading PyTorch") for m in seen), seen
+
+
+def test_ad_hoc_runs_write_under_a_run_folder_and_leave_the_pipelines_outputs(
+    tmp_path, monkeypatch, caplog
+):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(TINY))
+    assert runner.invoke(app, ["ingest"]).exit_code == 0  # the pipeline's own command
+    pipeline_demos = tmp_path / "data/demos/tiny.mcap"
+    before = pipeline_demos.read_bytes()
+    assert json.loads((tmp_path / "metrics/ingest.json").read_text())["episodes"] == 6
+
+    quick = ["-S", "ingest.episodes=4"]
+    result = runner.invoke(app, ["ingest", *quick])
+    assert result.exit_code == 0, result.output
+    (run,) = (tmp_path / "data/runs").iterdir()
+    assert f"data/runs/{run.name}" in caplog.text  # it says where
+    assert pipeline_demos.read_bytes() == before
+    assert json.loads((tmp_path / "metrics/ingest.json").read_text())["episodes"] == 6
+    assert json.loads((run / "metrics/ingest.json").read_text())["episodes"] == 4
+
+    # The same overrides in the next stage land in the same run and read its own demos.
+    assert runner.invoke(app, ["segment", *quick]).exit_code == 0
+    split = json.loads((run / "reports/segment/report.json").read_text())
+    assert split["train_episodes"] + split["validation_episodes"] + split["test_episodes"] == 4
+    assert not (tmp_path / "data/segments").exists()
+
+    # A named run without demos of its own reads the pipeline's.
+    assert runner.invoke(app, ["segment", "--run", "mine"]).exit_code == 0
+    split = json.loads((tmp_path / "data/runs/mine/reports/segment/report.json").read_text())
+    assert split["train_episodes"] + split["validation_episodes"] + split["test_episodes"] == 6
+
+    bad = runner.invoke(app, ["segment", "--run", "../escape"])
+    assert "--run" in _one_line_error(bad)

@@ -166,7 +166,7 @@ def project(tmp_path_factory):
 
 def test_deploy_writes_a_valid_report_and_prints_a_summary(project):
     root, _, output = project
-    report = json.loads((root / "data/reports/deploy.json").read_text())
+    report = json.loads((root / "data/reports/deploy/report.json").read_text())
     assert report["episodes"] == 6 and report["tasks"] == ["random_goal", "corners"]
     for task in ("random_goal", "corners"):
         t = report[task]

@@ -424,7 +424,7 @@ def test_cli_ingest_then_segment(source, tmp_path, request, expert, caplog):
     for command in ("ingest", "segment"):
         result = runner.invoke(app, [command, *common])
         assert result.exit_code == 0, result.output
-    report = json.loads((tmp_path / "data/reports/ingest.json").read_text())
+    report = json.loads((tmp_path / "data/reports/ingest/report.json").read_text())
     assert report["n_problems"] == 0  # the maze checks ran (walls, bounds, physics) and passed
     assert read_info(tmp_path / "data/demos/imported.mcap").source == source
     assert (tmp_path / "data/segments/imported/segments.safetensors").exists()

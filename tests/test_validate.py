@@ -250,7 +250,7 @@ def workdir(tmp_path_factory):
 def test_validate_writes_report_plots_and_recording(workdir):
     root, common = workdir
     data = root / "data"
-    report = json.loads((data / "reports/validate.json").read_text())
+    report = json.loads((data / "reports/validate/report.json").read_text())
     assert report["skill_horizon"] == 19 and report["rollouts_per_mode"] == 12
     assert report["real_wall_crossing"] == 0.0  # real MuJoCo paths never enter a wall
     for mode in ("prior", "posterior"):
@@ -287,7 +287,7 @@ def test_validate_writes_report_plots_and_recording(workdir):
     # Same params, same numbers (seeded starts, skills, action noise and particles).
     again = runner.invoke(app, ["validate", *common, "-S", "validate.record_starts=0"])
     assert again.exit_code == 0, again.output
-    second = json.loads((data / "reports/validate.json").read_text())
+    second = json.loads((data / "reports/validate/report.json").read_text())
     assert {k: v for k, v in second.items() if k != "timing"} == {
         k: v for k, v in report.items() if k != "timing"
     }

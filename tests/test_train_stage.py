@@ -1,0 +1,114 @@
+"""The train stage's files: scratch resume state, published outputs, old model kept, bad state."""
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+from factories import make_info, make_skill_episodes
+from safetensors.torch import load_file
+
+from pipeline.config import Params
+from pipeline.errors import UserError
+from pipeline.paths import Paths
+from pipeline.segments import build_segments, save_segments
+from stages import train
+
+SPLIT = {"train": 0.8, "validation": 0.1, "test": 0.1}
+SMALL = {"z_dim": 4, "hidden": 16, "batch_size": 16, "val_windows": 50, "device": "cpu"}
+
+
+@pytest.fixture(scope="module")
+def segments():
+    episodes = make_skill_episodes(n_episodes=12, length=120, seed=0)
+    return build_segments(episodes, make_info("skills", physics_dim=0), 11, 1, SPLIT, seed=0)
+
+
+@pytest.fixture
+def paths(tmp_path, segments) -> Paths:
+    save_segments(segments, tmp_path / "data" / "segments" / "skills")
+    return Paths(tmp_path / "data")
+
+
+def _params(**train) -> Params:
+    steps = {"max_steps": 20, "eval_every": 10, "checkpoint_every": 10}
+    return Params.model_validate({"ingest": {"name": "skills"}, "train": SMALL | steps | train})
+
+
+def _run(paths: Paths, **train_params):
+    with torch.random.fork_rng():
+        return train.run(_params(**train_params), paths, progress_bar=False)
+
+
+def _weights(paths: Paths) -> dict[str, torch.Tensor]:
+    return load_file(paths.model("skills") / "model.safetensors")
+
+
+def _scratch(paths: Paths) -> list[Path]:
+    return sorted((paths.root / "scratch" / "train").iterdir())
+
+
+def test_outputs_hold_the_model_the_logs_and_the_headline_and_no_resume_state(paths):
+    _run(paths)
+    assert sorted(p.name for p in paths.model("skills").iterdir()) == [
+        "config.json",
+        "model.safetensors",
+    ]
+    assert json.loads((paths.live("train") / "metrics.json").read_text())["step"] == 20
+    headline = json.loads(paths.metrics("train").read_text())
+    assert headline["steps"] == 20 and headline["best_step"] in (10, 20)
+    assert paths.metrics("train") == paths.root.parent / "metrics" / "train.json"
+    (scratch,) = _scratch(paths)
+    assert (scratch / "resume" / "state.json").exists()
+
+
+def test_a_second_run_of_the_same_params_restores_the_outputs_without_training(paths):
+    _run(paths)
+    first = _weights(paths)
+    for out in (paths.model("skills"), paths.live("train")):  # what DVC deletes before a run
+        for f in sorted(out.rglob("*"), reverse=True):
+            f.unlink() if f.is_file() else f.rmdir()
+        out.rmdir()
+    progress = _run(paths)
+    assert progress.step == 20
+    for name, value in first.items():
+        assert torch.equal(value, _weights(paths)[name])
+
+
+def test_lowering_max_steps_below_the_resume_state_starts_over(paths, caplog):
+    _run(paths, max_steps=30)
+    with caplog.at_level("INFO"):
+        progress = _run(paths, max_steps=20)
+    assert "starting over" in caplog.text
+    assert progress.step == 20
+    assert json.loads(paths.metrics("train").read_text())["steps"] == 20
+
+
+def test_a_fresh_run_that_diverges_leaves_the_previous_model_in_place(paths):
+    _run(paths)
+    before = _weights(paths)
+    with pytest.raises(UserError, match="diverged"):
+        _run(paths, lr_e=1e30, lr_m=1e30, seed=1)
+    after = _weights(paths)
+    for name, value in before.items():
+        assert torch.equal(value, after[name]), name
+
+
+@pytest.mark.parametrize(
+    "damage",
+    [
+        lambda d: (d / "state.json").write_text("{not json"),
+        lambda d: (d / "model.safetensors").write_bytes(b"\0" * 64),
+        lambda d: (d / "optim.pt").write_bytes(b"garbage"),
+    ],
+    ids=["state.json", "model.safetensors", "optim.pt"],
+)
+def test_a_corrupt_resume_state_is_a_one_line_error_naming_the_folder(paths, damage):
+    _run(paths, max_steps=10)
+    (scratch,) = _scratch(paths)
+    damage(scratch / "resume")
+    with pytest.raises(UserError) as err:
+        _run(paths, max_steps=20)
+    message = str(err.value)
+    assert str(scratch / "resume") in message and "delete" in message
+    assert "\n" not in message
