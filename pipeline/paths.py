@@ -57,6 +57,10 @@ class Paths:
         """The checkpoint directory `data/models/<name>/` (the best model)."""
         return self.root / "models" / name
 
+    def dynamics(self, name: str) -> Path:
+        """The single-step model `data/models/<name>-dynamics/` (beside the skill model)."""
+        return self.root / "models" / f"{name}-dynamics"
+
     def scratch(self, stage: str, key: str) -> Path:
         """Resumable work of a stage, keyed by what it computes: `data/scratch/<stage>/<key>/`.
 

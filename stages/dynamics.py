@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from pathlib import Path
 
 from pipeline.config import Params
 from pipeline.devices import resolve_device, torch_threads
@@ -22,11 +21,6 @@ from stages.report import write_report
 log = logging.getLogger(__name__)
 
 
-def dynamics_dir(paths: Paths, name: str) -> Path:
-    """`data/models/<name>-dynamics/`: beside the skill model, a DVC output of its own."""
-    return paths.model(f"{name}-dynamics")
-
-
 def run(params: Params, paths: Paths) -> dict[str, float]:
     """Train on `data/segments/<name>/`; write the checkpoint and the metrics; return them."""
     cfg, name = params.dynamics, params.ingest.name
@@ -35,7 +29,7 @@ def run(params: Params, paths: Paths) -> dict[str, float]:
     with torch_threads(1 if device.type == "cpu" else None):
         model, metrics = fit_dynamics(segments, cfg, device)
     extra = {"dataset": segments.info.name, "info": dataclasses.asdict(segments.info)}
-    save_dynamics(model, dynamics_dir(paths, name), extra | {"metrics": metrics})
+    save_dynamics(model, paths.dynamics(name), extra | {"metrics": metrics})
     write_report(paths, "dynamics", metrics | {"device": str(device)})
     log.info(
         "dynamics model: val NLL %.3f, one-step RMSE %.2e after %d steps (%.0f s) -> %s",
@@ -43,6 +37,6 @@ def run(params: Params, paths: Paths) -> dict[str, float]:
         metrics["val_rmse"],
         metrics["steps"],
         metrics["wall_s"],
-        dynamics_dir(paths, name),
+        paths.dynamics(name),
     )
     return metrics

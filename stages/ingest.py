@@ -10,8 +10,8 @@ from pathlib import Path
 
 from pipeline.config import Params
 from pipeline.dataset import DatasetInfo, Episode
-from pipeline.envs import check_maze_dataset, dataset_info, generate_episodes, raise_for_problems
-from pipeline.envs.checks import DatasetReport
+from pipeline.envs.checks import DatasetReport, check_maze_dataset, raise_for_problems
+from pipeline.envs.generate import dataset_info, generate_episodes
 from pipeline.io import atomic_path
 from pipeline.paths import Paths
 from pipeline.recording import iter_episodes, write_dataset

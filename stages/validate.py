@@ -23,7 +23,6 @@ from pipeline.io import atomic_path
 from pipeline.model.checkpoint import load_dynamics, load_model
 from pipeline.paths import Paths
 from pipeline.segments import load_segments
-from stages.dynamics import dynamics_dir
 from stages.report import write_report
 
 log = logging.getLogger(__name__)
@@ -51,7 +50,7 @@ def run(params: Params, paths: Paths) -> dict[str, Any]:
     spec = make_env_spec(info.env_id, info.env_kwargs)
     device = resolve_device(cfg.device, "validate.device")
     model, meta = load_model(paths.existing(paths.model(name)), device=device)
-    dynamics_path = paths.existing(dynamics_dir(paths, name))
+    dynamics_path = paths.existing(paths.dynamics(name))
     dynamics, dyn_meta = load_dynamics(dynamics_path, device=device)
     check_same_environment(info, meta, f"the skill model in {paths.model(name)}")
     check_same_environment(info, dyn_meta, f"the dynamics model in {dynamics_path}")

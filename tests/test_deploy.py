@@ -13,8 +13,9 @@ from rerun.chunk import RrdReader
 from typer.testing import CliRunner
 
 from cli import app
-from pipeline.envs import BatchSim, PointMazeSpec, make_maze_env
-from pipeline.envs.maze import layout_cell
+from pipeline.envs.batch import BatchSim
+from pipeline.envs.maze import layout_cell, make_maze_env
+from pipeline.envs.spec import PointMazeSpec
 from pipeline.errors import UserError
 from pipeline.evaluation.episodes import EpisodeResult, RunConfig, run_episodes
 from pipeline.evaluation.report import format_summary

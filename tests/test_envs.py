@@ -9,20 +9,18 @@ import numpy as np
 import pytest
 
 from pipeline.dataset import Episode
-from pipeline.envs import (
+from pipeline.envs.checks import check_maze_dataset, raise_for_problems
+from pipeline.envs.expert import ExpertConfig
+from pipeline.envs.generate import dataset_info, generate_episodes
+from pipeline.envs.maze import (
     SUPPORTED_ENVS,
-    ExpertConfig,
     cell_to_xy,
-    check_maze_dataset,
-    dataset_info,
     free_cells,
-    generate_episodes,
     get_physics_state,
     make_maze_env,
     max_episode_steps,
     maze_layout,
     maze_of,
-    raise_for_problems,
     set_physics_state,
     xy_to_cell,
 )
@@ -250,7 +248,8 @@ def test_batch_sim_runs_a_model_variant_per_slot() -> None:
 
     import mujoco
 
-    from pipeline.envs import BatchSim, PointMazeSpec
+    from pipeline.envs.batch import BatchSim
+    from pipeline.envs.spec import PointMazeSpec
 
     spec = PointMazeSpec.create("PointMaze_UMaze-v3")
     heavy = copy.copy(spec.model)

@@ -20,17 +20,16 @@ import yaml
 from typer.testing import CliRunner
 
 from cli import app
-from pipeline.envs import (
-    ExpertConfig,
+from pipeline.envs.expert import ExpertConfig
+from pipeline.envs.generate import dataset_info, generate_episodes
+from pipeline.envs.maze import (
     cell_to_xy,
-    dataset_info,
     free_cells,
-    generate_episodes,
     make_maze_env,
     maze_layout,
     maze_of,
+    register_envs,
 )
-from pipeline.envs.maze import register_envs
 from pipeline.errors import UserError
 from pipeline.recording import read_episodes, read_info, write_dataset
 from pipeline.sources import export_lerobot, read_d4rl, read_lerobot, read_minari

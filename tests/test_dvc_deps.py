@@ -1,0 +1,115 @@
+"""Every stage's `deps` in dvc.yaml cover the code it runs, so editing that code reruns it.
+
+The code a stage runs is `stages/<stage>.py` and every project module it imports, transitively
+(AST scan, lazy imports included; `from package import name` also counts `package/name.py`).
+"""
+
+import ast
+from pathlib import Path
+
+import pytest
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("pipeline", "stages")
+# Plumbing that cannot change what a stage computes: not required in deps and not followed.
+# config.py: the params themselves are tracked by each stage's `params:` (and params.yaml equals
+# the config defaults, tests/test_config.py); its imports are for validating names.
+NOT_RESULTS = {
+    "pipeline/__init__.py",
+    "stages/__init__.py",
+    "pipeline/errors.py",
+    "pipeline/paths.py",
+    "pipeline/io.py",
+    "pipeline/devices.py",
+    "pipeline/config.py",
+}
+
+
+def _module_file(name: str) -> Path | None:
+    parts = name.split(".")
+    if parts[0] not in PACKAGES:
+        return None
+    base = ROOT.joinpath(*parts)
+    for candidate in (base.with_suffix(".py"), base / "__init__.py"):
+        if candidate.exists():
+            return candidate
+    return None
+
+
+def _imports(path: Path) -> set[Path]:
+    found: set[Path] = set()
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        names: list[str] = []
+        if isinstance(node, ast.Import):
+            names = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            names = [node.module] + [f"{node.module}.{alias.name}" for alias in node.names]
+        for name in names:
+            parts = name.split(".")
+            for i in range(1, len(parts) + 1):  # importing a.b.c runs a/__init__, a/b/__init__
+                module = _module_file(".".join(parts[:i]))
+                if module is not None:
+                    found.add(module)
+    return found
+
+
+def _docstring_only(path: Path) -> bool:
+    return all(isinstance(n, ast.Expr) for n in ast.parse(path.read_text()).body)
+
+
+def code_of(stage_file: Path) -> set[Path]:
+    """The project files `stage_file` runs: itself and everything it imports, transitively."""
+    seen, todo = set(), [stage_file]
+    while todo:
+        path = todo.pop()
+        if (
+            path in seen
+            or path.relative_to(ROOT).as_posix() in NOT_RESULTS
+            or _docstring_only(path)
+        ):
+            continue
+        seen.add(path)
+        todo += _imports(path) - seen
+    return seen
+
+
+def _stages() -> dict[str, dict]:
+    return yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
+
+
+# Packages whose __init__ re-exports their core classes (listed in deps where used).
+REEXPORTING = {
+    "pipeline/model/__init__.py",
+    "pipeline/planning/__init__.py",
+    "pipeline/recording/__init__.py",
+    "pipeline/sources/__init__.py",
+}
+
+
+def test_package_inits_hold_no_code():
+    """A package's __init__ runs on every import of its modules: keep them docstring-only, so
+    a stage's code is the modules it names."""
+    for init in [*ROOT.glob("pipeline/**/__init__.py"), ROOT / "stages/__init__.py"]:
+        rel = init.relative_to(ROOT).as_posix()
+        if rel in REEXPORTING:
+            continue
+        assert _docstring_only(init), f"{rel} runs code on import"
+
+
+def test_the_scan_follows_imports_into_packages():
+    code = {p.relative_to(ROOT).as_posix() for p in code_of(ROOT / "stages/train.py")}
+    assert {"stages/train.py", "pipeline/training/loop.py", "pipeline/model/__init__.py"} <= code
+
+
+@pytest.mark.parametrize("stage", sorted(_stages()))
+def test_stage_deps_cover_the_code_it_runs(stage):
+    spec = _stages()[stage]
+    deps = [d if isinstance(d, str) else next(iter(d)) for d in spec["deps"]]
+    module = spec["cmd"].split()[1]
+    missing = []
+    for path in sorted(code_of(ROOT / "stages" / f"{module}.py")):
+        rel = path.relative_to(ROOT).as_posix()
+        if not any(rel == d or rel.startswith(d.rstrip("/") + "/") for d in deps):
+            missing.append(rel)
+    assert not missing, f"dvc.yaml stage {stage} runs code it does not list in deps: {missing}"
