@@ -131,10 +131,25 @@ def _setup_logging() -> None:
         logging.getLogger(name).setLevel(logging.INFO)
 
 
+def _end_with_dvc() -> None:
+    """Under `dvc repro` / `dvc exp run`, stop when DVC is killed instead of training on as an
+    orphan (Linux: the kernel sends SIGTERM when the parent dies; the resume state stays)."""
+    if "DVC_STAGE" not in os.environ or not sys.platform.startswith("linux"):
+        return
+    import ctypes
+    import signal
+
+    pr_set_pdeathsig = 1
+    ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, signal.SIGTERM)
+    if os.getppid() == 1:  # DVC died before the call above
+        os.kill(os.getpid(), signal.SIGTERM)
+
+
 def _load(params: Path, overrides: list[str] | None) -> Params:
     from pipeline.config import load_params
 
     _setup_logging()
+    _end_with_dvc()
     return load_params(params, overrides or [])
 
 

@@ -112,3 +112,45 @@ def test_a_corrupt_resume_state_is_a_one_line_error_naming_the_folder(paths, dam
     message = str(err.value)
     assert str(scratch / "resume") in message and "delete" in message
     assert "\n" not in message
+
+
+@pytest.mark.slow
+def test_a_trainer_started_by_dvc_stops_when_dvc_is_killed(paths, tmp_path):
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    import yaml
+
+    root = Path(__file__).resolve().parents[1]
+    params = tmp_path / "params.yaml"
+    steps = {"max_steps": 100000, "eval_every": 1000, "checkpoint_every": 1000}
+    params.write_text(yaml.safe_dump({"ingest": {"name": "skills"}, "train": SMALL | steps}))
+    train_cmd = [sys.executable, str(root / "cli.py"), "train", "-p", str(params)]
+    train_cmd += ["--data", str(paths.root)]
+    fake_dvc = (  # what DVC does: run the stage's command as a child, with DVC_STAGE set
+        "import subprocess, sys, time\n"
+        f"child = subprocess.Popen({train_cmd!r})\n"
+        "print(child.pid, flush=True)\n"
+        "time.sleep(600)\n"
+    )
+    env = {**os.environ, "DVC_STAGE": "train", "OMP_NUM_THREADS": "1", "PYTHONPATH": str(root)}
+    dvc = subprocess.Popen([sys.executable, "-c", fake_dvc], stdout=subprocess.PIPE, env=env)
+    trainer = int(dvc.stdout.readline())
+    time.sleep(3)  # the trainer is importing torch, or training
+    dvc.kill()
+    dvc.wait()
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        try:
+            os.kill(trainer, 0)
+        except ProcessLookupError:
+            break
+        if Path(f"/proc/{trainer}/stat").read_text().split()[2] == "Z":  # exited, unreaped
+            break
+        time.sleep(0.1)
+    else:
+        os.kill(trainer, signal.SIGKILL)
+        pytest.fail("the trainer kept running after DVC was killed")
