@@ -72,8 +72,12 @@ def test_m_objective_by_hand_includes_the_world_model_of_the_last_state():
     got, terms = m_objective(model, BATCH, Z)
     log_tawm = [sum(_normal_log_pdf(x, 1.0, STD) for x in s_t) for s_t in ((1.0, 2.0), (3.0, -1.0))]
     torch.testing.assert_close(terms["log_tawm"], torch.tensor(log_tawm), rtol=1e-5, atol=1e-5)
-    want = -(terms["log_pi"] + terms["log_tawm"] + terms["log_prior"]).mean()
-    assert float(got.detach()) == pytest.approx(float(want.detach()))
+    per_window = []
+    for b, actions in enumerate([(0.5, 1.5), (-0.5, 0.0)]):
+        log_pi = sum(_normal_log_pdf(a, 0.5, STD) for a in actions)
+        log_prior = sum(_normal_log_pdf(float(z), 0.0, STD) for z in Z[b])
+        per_window.append(log_pi + log_tawm[b] + log_prior)
+    assert float(got.detach()) == pytest.approx(-sum(per_window) / 2, rel=1e-5)
 
 
 def test_vi_objective_kl_matches_the_closed_form():

@@ -75,7 +75,8 @@ def test_vi_step_updates_everything(segments):
     assert all(_changed(before, model.parameters()))
 
 
-def _fit(segments, model, updater, steps, on_best=lambda p: None):
+def _fit(segments, model, updater, steps, on_best=lambda p: None, eval_every=None):
+    """Train; returns the trainer, its progress and the logged `(step, metrics)` validations."""
     train = WindowSampler(segments, "train", torch.device("cpu"), 0)
     val = WindowSampler(segments, "validation", torch.device("cpu"), 0)
     logged = []
@@ -85,21 +86,74 @@ def _fit(segments, model, updater, steps, on_best=lambda p: None):
         train,
         val,
         val.fixed_subset(500, 0),
-        Budget(steps, None, 64, eval_every=steps, checkpoint_every=10**9),
-        Callbacks(lambda s, m: logged.append(m), on_best, lambda p: None),
+        Budget(steps, None, 64, eval_every=eval_every or steps, checkpoint_every=10**9),
+        Callbacks(lambda s, m: logged.append((s, m)), on_best, lambda p: None),
         progress_bar=False,
     )
     return trainer, trainer.fit(Progress()), logged
 
 
+def _best_of(logged) -> tuple[int, float]:
+    """Step and value of the lowest logged validation s_T NLL."""
+    step, metrics = min(logged, key=lambda sm: sm[1]["val/st_nll"])
+    return step, metrics["val/st_nll"]
+
+
 def test_em_learns_a_world_model_far_better_than_no_model(segments):
     model = _model(segments)
-    _, progress, logged = _fit(segments, model, EMUpdater(model, 3e-3, 3e-3), steps=300)
-    val = logged[-1]
+    _, progress, logged = _fit(
+        segments, model, EMUpdater(model, 3e-3, 3e-3), steps=300, eval_every=50
+    )
+    assert [s for s, _ in logged] == [50, 100, 150, 200, 250, 300]
+    first, last = logged[0][1], logged[-1][1]
     # Untrained, the TAWM is no better than guessing; after 300 EM steps its s_T error given the
     # inferred skill must be well under the s_T = s_0 baseline (measured: about 5x under).
-    assert val["val/st_error"] < 0.4 * val["val/st_error_no_model"]
-    assert progress.best_step == 300
+    assert last["val/st_error"] < 0.4 * last["val/st_error_no_model"]
+    assert last["val/st_nll"] < first["val/st_nll"] and last["val/kl"] > 0
+    assert (progress.best_step, progress.best_st_nll) == _best_of(logged)
+
+
+class _DegradesAfter:
+    """EM steps; after `good` steps each step also adds noise to the TAWM's weights, so the
+    validation s_T NLL gets worse and the best checkpoint must stay behind."""
+
+    def __init__(self, updater: EMUpdater, good: int):
+        self.updater, self.good, self.n = updater, good, 0
+        self.generator = torch.Generator().manual_seed(0)
+
+    def step(self, batch):
+        metrics = self.updater.step(batch)
+        self.n += 1
+        if self.n > self.good:
+            with torch.no_grad():
+                for p in self.updater.model.tawm.parameters():
+                    p.add_(0.05 * torch.randn(p.shape, generator=self.generator))
+        return metrics
+
+
+def test_best_checkpoint_is_the_lowest_validation_nll_not_the_last(segments):
+    model = _model(segments)
+    saved = []  # (best_step, model weights) at each save_best call
+
+    def on_best(p):
+        saved.append((p.best_step, {k: v.clone() for k, v in model.state_dict().items()}))
+
+    updater = _DegradesAfter(EMUpdater(model, 3e-3, 3e-3), good=100)
+    trainer, progress, logged = _fit(segments, model, updater, 200, on_best, eval_every=20)
+    steps = [s for s, _ in logged]
+    assert steps == list(range(20, 201, 20))
+    best_step, best_nll = _best_of(logged)
+    assert best_step < 200, "the scenario must make the last validation worse than the best"
+    assert (progress.best_step, progress.best_st_nll) == (best_step, best_nll)
+    # save_best is called exactly at each new running minimum, with the weights of that step.
+    running, improved = float("inf"), []
+    for s, m in logged:
+        if m["val/st_nll"] < running:
+            running = m["val/st_nll"]
+            improved.append(s)
+    assert [s for s, _ in saved] == improved and improved[-1] == best_step
+    model.load_state_dict(saved[-1][1])
+    assert evaluate(model, trainer.val, trainer.val_idx)["val/st_nll"] == best_nll
 
 
 def test_nan_loss_stops_with_the_step_and_keeps_the_best_checkpoint(segments):
@@ -156,10 +210,13 @@ def test_killed_run_resumes_and_ends_bit_identical_to_an_uninterrupted_one(tmp_p
 
     killed = _project(tmp_path / "killed", segments, overrides)
     proc = subprocess.Popen(_train_command(killed), env=_env(), stderr=subprocess.DEVNULL)
-    state = killed / "data/models/skills/resume/state.json"
+    scratch = killed / "data/scratch/train"
     deadline = time.monotonic() + 120
+    state = None
     while time.monotonic() < deadline:
-        if state.exists() and json.loads(state.read_text())["progress"]["step"] >= 100:
+        states = list(scratch.glob("skills-*/resume/state.json"))
+        state = states[0] if states else None
+        if state is not None and json.loads(state.read_text())["progress"]["step"] >= 100:
             break
         time.sleep(0.02)
     proc.send_signal(signal.SIGKILL)
@@ -170,10 +227,17 @@ def test_killed_run_resumes_and_ends_bit_identical_to_an_uninterrupted_one(tmp_p
     result = subprocess.run(_train_command(killed), env=_env(), capture_output=True, text=True)
     assert result.returncode == 0, result.stderr
     assert f"resuming from step {killed_at}" in result.stderr
-    a = load_file(straight / "data/models/skills/resume/model.safetensors")
-    b = load_file(killed / "data/models/skills/resume/model.safetensors")
-    for name in a:
-        assert torch.equal(a[name], b[name]), name
+    (resumed,) = (killed / "data/scratch/train").glob("skills-*/resume/model.safetensors")
+    (uninterrupted,) = (straight / "data/scratch/train").glob("skills-*/resume/model.safetensors")
+    for a, b in [
+        (load_file(uninterrupted), load_file(resumed)),
+        *[  # the published best models too
+            (load_file(straight / p), load_file(killed / p))
+            for p in ["data/models/skills/model.safetensors"]
+        ],
+    ]:
+        for name in a:
+            assert torch.equal(a[name], b[name]), name
     metrics = json.loads((killed / "data/reports/train/metrics.json").read_text())
     assert metrics["step"] == 400
 

@@ -1,0 +1,113 @@
+"""CUDA gives what the CPU gives: the training objectives and their gradients, an EM step, the skill
+rollout, and the skill MPC (warm start included) in closed loop. Skipped without a CUDA GPU
+(`tests/conftest.py`). Random streams differ between devices, so comparisons use the same z / eps
+on both; float32 throughout, as training and deployment run."""
+
+import copy
+
+import numpy as np
+import pytest
+import torch
+
+from pipeline.envs.batch import BatchSim
+from pipeline.envs.spec import PointMazeSpec
+from pipeline.evaluation.episodes import RunConfig, run_episodes
+from pipeline.evaluation.tasks import EpisodeSpec
+from pipeline.model import SkillModel, SkillModelConfig
+from pipeline.planning import CEMConfig, PlannerConfig, SkillPlanner
+from pipeline.planning.mpc import SkillMPC
+from pipeline.training.data import WindowBatch
+from pipeline.training.losses import e_objective, m_objective, vi_objective
+from pipeline.training.updaters import EMUpdater
+
+pytestmark = pytest.mark.gpu
+CLOSE = {"rtol": 1e-4, "atol": 1e-4}
+
+
+def _model() -> SkillModel:
+    torch.manual_seed(0)
+    model = SkillModel(SkillModelConfig(4, 2, z_dim=8, hidden=64))
+    model.set_normalization([0.5, -0.5, 0.0, 0.0], [2.0, 2.0, 1.0, 1.0], [0.0, 0.0], [0.5, 0.5])
+    return model
+
+
+def _objectives(model: SkillModel, batch: WindowBatch, z: torch.Tensor) -> dict:
+    """The three objectives at fixed z, and the gradients of their sum in every parameter."""
+    q = model.posterior_dist(batch.states[:, :-1], batch.actions)
+    losses = {
+        "e": e_objective(model, batch, q, z),
+        "m": m_objective(model, batch, z)[0],
+        "vi": vi_objective(model, batch, q, z)[0],
+    }
+    grads = torch.autograd.grad(sum(losses.values()), list(model.parameters()))
+    return {k: v.detach().cpu() for k, v in losses.items()} | {
+        f"grad{i}": g.cpu() for i, g in enumerate(grads)
+    }
+
+
+def check_training_matches_cpu(device: str) -> None:
+    g = torch.Generator().manual_seed(1)
+    batch = WindowBatch(torch.randn(32, 11, 4, generator=g), torch.randn(32, 10, 2, generator=g))
+    z = torch.randn(32, 8, generator=g)
+    cpu = _model()
+    dev = copy.deepcopy(cpu).to(device)
+    want = _objectives(cpu, batch, z)
+    dev_batch = WindowBatch(batch.states.to(device), batch.actions.to(device))
+    got = _objectives(dev, dev_batch, z.to(device))
+    for name in want:
+        torch.testing.assert_close(got[name], want[name], **CLOSE, msg=name)
+    # A whole EM step runs on the device and moves the weights (z noise differs by device).
+    before = [p.detach().cpu().clone() for p in dev.parameters()]
+    metrics = EMUpdater(dev, 1e-3, 1e-3).step(dev_batch)
+    assert all(np.isfinite(v) for v in metrics.values())
+    assert all(not torch.equal(b, p.cpu()) for b, p in zip(before, dev.parameters(), strict=True))
+
+
+def _chain(model: SkillModel, s0: torch.Tensor, eps: torch.Tensor) -> torch.Tensor:
+    """States `[B, L + 1, sd]` of whitened skills `eps [B, L, z]` chained through the prior and
+    the TAWM mean, one skill at a time, with the model's raw-unit interface."""
+    states = [s0]
+    for k in range(eps.shape[1]):
+        mean, std = model.skill_prior(states[-1])
+        states.append(model.predict_end(states[-1], mean + std * eps[:, k])[0])
+    return torch.stack(states, dim=1)
+
+
+def check_planning_matches_cpu(device: str) -> None:
+    cpu = _model().eval()
+    dev = copy.deepcopy(cpu).to(device)
+    g = torch.Generator().manual_seed(2)
+    s0, eps = torch.randn(16, 4, generator=g), torch.randn(16, 4, 8, generator=g)
+    got = _chain(dev, s0.to(device), eps.to(device))
+    torch.testing.assert_close(got.cpu(), _chain(cpu, s0, eps), **CLOSE)
+
+    # The MPC on the device, twice (the second replan warm-starts), then in closed loop.
+    agent = SkillMPC(dev, SkillPlanner(dev, PlannerConfig(4, CEMConfig(32, 8, 4))))
+    agent.reset(np.array([[1.0, 1.0], [-1.0, 0.5]]), seeds=[1, 2])
+    states = np.array([[0.5, 0.5, 0.0, 0.0], [-0.5, 1.0, 0.1, -0.1]])
+    for _ in range(2):
+        plan = agent.replan(np.array([0, 1]), states)
+    assert plan.eps.device.type == torch.device(device).type
+    cpu_states = _chain(cpu, torch.as_tensor(states).float(), plan.eps.cpu())
+    torch.testing.assert_close(plan.states.cpu(), cpu_states, **CLOSE)
+    actions = agent.act(np.array([0, 1]), states)
+    want = cpu.act(torch.as_tensor(states).float(), plan.z[:, 0].cpu()).double().numpy()
+    np.testing.assert_allclose(actions, want, **CLOSE)
+
+    specs = [
+        EpisodeSpec("goal", i, np.array([x, y, 0.0, 0.0]), np.array([1.0, 1.0]), i)
+        for i, (x, y) in enumerate([(-1.0, 1.0), (1.0, -1.0)])
+    ]
+    results, calls = run_episodes(
+        agent, BatchSim(PointMazeSpec.create("PointMaze_Medium-v3"), 2), specs, RunConfig(30, 10)
+    )
+    assert all(r.error is None and r.steps == 30 and r.replans == 3 for r in results)
+    assert [c.envs for c in calls] == [2, 2, 2]
+
+
+def test_training_objectives_gradients_and_an_em_step_on_cuda_match_cpu():
+    check_training_matches_cpu("cuda")
+
+
+def test_skill_rollout_and_mpc_on_cuda_match_cpu():
+    check_planning_matches_cpu("cuda")
