@@ -12,6 +12,7 @@ from pipeline.config import Params
 from pipeline.dataset import DatasetInfo, Episode
 from pipeline.envs.checks import DatasetReport, check_maze_dataset, raise_for_problems
 from pipeline.envs.generate import dataset_info, generate_episodes
+from pipeline.envs.spec import check_physics_dim
 from pipeline.io import atomic_path
 from pipeline.paths import Paths
 from pipeline.recording import iter_episodes, write_dataset
@@ -60,14 +61,21 @@ def _check(path: Path, info: DatasetInfo) -> DatasetReport | None:
 def run(params: Params, paths: Paths, progress: bool = True) -> dict[str, float]:
     """Generate (or import) the demonstrations, write the MCAP, check it, report metrics.
 
-    The file is written and then read back and checked (`check_maze_dataset`, for simulated
-    mazes) under a temporary name; only a dataset that passes is renamed into place. A bad import
-    fails before anything is written, or while streaming, leaving no file behind.
+    Physics states of the wrong size for the environment fail first (`check_physics_dim`). The
+    file is written and then read back and checked (`check_maze_dataset`, for simulated mazes)
+    under a temporary name; only a dataset that passes is renamed into place. A bad import fails
+    before anything is written, or while streaming, leaving no file behind.
     """
     cfg = params.ingest
     dest = paths.demos(cfg.name)
     start = time.perf_counter()
     info, episodes = _source(params, progress)
+    check_physics_dim(
+        info,
+        str(dest),
+        "the source was recorded in another MuJoCo model: import it with the env id of that "
+        "model, or with none",
+    )
     with atomic_path(dest) as tmp:
         written = write_dataset(tmp, info, episodes)
         generated = time.perf_counter() - start

@@ -6,6 +6,7 @@ import logging
 import time
 
 from pipeline.config import Params
+from pipeline.envs.spec import check_physics_dim
 from pipeline.paths import Paths
 from pipeline.recording import iter_episodes, read_info
 from pipeline.segments import Segments, build_segments, save_segments
@@ -20,6 +21,11 @@ def run(params: Params, paths: Paths) -> Segments:
     source = paths.existing(paths.demos(params.ingest.name))
     start = time.perf_counter()
     info = read_info(source)
+    check_physics_dim(
+        info,
+        str(source),
+        "it was written for another model; record or import it again (`oposm ingest`)",
+    )
     segments = build_segments(
         iter_episodes(source),
         info,

@@ -232,3 +232,53 @@ def test_ad_hoc_runs_write_under_a_run_folder_and_leave_the_pipelines_outputs(
 
     bad = runner.invoke(app, ["segment", "--run", "../escape"])
     assert "--run" in _one_line_error(bad)
+
+
+def _wrong_physics_source(params, progress):
+    """Real PointMaze episodes whose physics states carry one number too many (6, not 5)."""
+    import dataclasses
+
+    import numpy as np
+
+    from pipeline.envs.expert import ExpertConfig
+    from pipeline.envs.generate import dataset_info, generate_episodes
+
+    cfg, expert = params.ingest, ExpertConfig()
+    info = dataset_info(cfg.env_id, cfg.name, 0, expert, cfg.episodes, cfg.episode_steps)
+    episodes = generate_episodes(cfg.env_id, cfg.episodes, cfg.episode_steps, 0, expert)
+    widened = (
+        dataclasses.replace(ep, physics=np.column_stack([ep.physics, np.zeros(len(ep))]))
+        for ep in episodes
+    )
+    return dataclasses.replace(info, physics_dim=6), widened
+
+
+def test_ingest_refuses_physics_states_of_the_wrong_size(tmp_path, monkeypatch):
+    from stages import ingest
+
+    monkeypatch.setattr(ingest, "_source", _wrong_physics_source)
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(TINY))
+    args = ["ingest", "--params", str(tmp_path / "params.yaml"), "--data", str(tmp_path / "d")]
+    line = _one_line_error(runner.invoke(app, args))
+    assert str(tmp_path / "d/demos/tiny.mcap") in line
+    assert "have 6 numbers" in line and "PointMaze_Medium-v3 has 5" in line
+    assert not list((tmp_path / "d/demos").glob("*"))
+
+
+def test_segment_refuses_a_dataset_whose_physics_states_have_the_wrong_size(tmp_path):
+    """Such a file (written before the ingest check, or by another tool) used to pass segment and
+    deploy and fail only in validate."""
+    from factories import make_episodes, make_info
+
+    from pipeline.recording import write_dataset
+
+    demos = tmp_path / "d/demos"
+    demos.mkdir(parents=True)
+    info = make_info("tiny", physics_dim=6)
+    write_dataset(demos / "tiny.mcap", info, make_episodes([60] * 6, physics_dim=6))
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(TINY))
+    args = ["segment", "--params", str(tmp_path / "params.yaml"), "--data", str(tmp_path / "d")]
+    line = _one_line_error(runner.invoke(app, args))
+    assert str(demos / "tiny.mcap") in line and "oposm ingest" in line
+    assert "have 6 numbers" in line and "PointMaze_Medium-v3 has 5" in line
+    assert not (tmp_path / "d/segments").exists()

@@ -52,7 +52,7 @@ class BatchSim:
         if any((m.nq, m.nv, m.nu) != layout for m in self.models):
             raise ValueError("every slot's model must have the nominal model's nq, nv and nu")
         self.datas = [mujoco.MjData(m) for m in self.models]
-        self.physics_dim = mujoco.mj_stateSize(spec.model, PHYSICS_SPEC)
+        self.physics_dim = spec.physics_dim
 
     def __len__(self) -> int:
         return len(self.datas)

@@ -6,9 +6,11 @@ stepping: how an observation is read from and written into `MjData`, and one con
 batched simulator (`pipeline.envs.batch.BatchSim`) runs any spec; a new environment family (e.g.
 OGBench point / ant mazes) is a new spec class, nothing else.
 
-It also carries the facts that other modules would otherwise hard-code: the sizes of states and
-actions, which state dimensions a goal refers to (`goal_dims`: x, y of the agent in the maze
-plane), the control period and the maze layout.
+It also carries the facts that other modules would otherwise hard-code: the sizes of states,
+actions and recorded physics states, which state dimensions a goal refers to (`goal_dims`: x, y
+of the agent in the maze plane), the control period and the maze layout. `check_physics_dim`
+holds a dataset's physics states against it from the metadata alone, so ingest and segment refuse
+a dataset recorded in another model before validate would.
 """
 
 from __future__ import annotations
@@ -19,7 +21,9 @@ from typing import Any, Protocol
 import mujoco
 import numpy as np
 
+from pipeline.dataset import DatasetInfo
 from pipeline.envs.maze import (
+    PHYSICS_SPEC,
     SUPPORTED_ENVS,
     make_maze_env,
     max_episode_steps,
@@ -37,6 +41,8 @@ class EnvSpec(Protocol):
         env_id: The gymnasium id.
         state_dim: Size of an observation (the state the models see).
         action_dim: Size of an action.
+        physics_dim: Size of a full MuJoCo physics state (`mjSTATE_FULLPHYSICS`), what datasets
+            record per step so that validate can restore the simulator.
         goal_dims: State dimensions a goal `[G]` refers to (and the agent's position in the plane).
         dt: Seconds per control step.
         max_episode_steps: Step limit of one evaluation episode.
@@ -47,6 +53,7 @@ class EnvSpec(Protocol):
     env_id: str
     state_dim: int
     action_dim: int
+    physics_dim: int
     goal_dims: tuple[int, ...]
     dt: float
     max_episode_steps: int
@@ -92,6 +99,11 @@ class PointMazeSpec:
         finally:
             env.close()
 
+    @property
+    def physics_dim(self) -> int:
+        """`[time, x, y, vx, vy]`: 5."""
+        return int(mujoco.mj_stateSize(self.model, PHYSICS_SPEC))
+
     def observe(self, data: mujoco.MjData) -> np.ndarray:
         """`[x, y, vx, vy]` = qpos, qvel."""
         return np.concatenate([data.qpos, data.qvel])
@@ -118,3 +130,26 @@ def make_env_spec(env_id: str, env_kwargs: dict[str, Any] | None = None) -> EnvS
             f"{', '.join(SUPPORTED_ENVS)}"
         )
     return PointMazeSpec.create(env_id, **(env_kwargs or {}))
+
+
+def check_physics_dim(info: DatasetInfo, where: str, fix: str) -> None:
+    """Check that the physics states `info` describes fit its environment's MuJoCo state.
+
+    Nothing to check for a dataset without physics states or without a simulator here.
+
+    Args:
+        info: The dataset's metadata (`physics_dim`, `env_id`, `env_kwargs`).
+        where: The file the user knows the dataset by, first in the message.
+        fix: What to do about it, last in the message.
+
+    Raises:
+        UserError: `info.physics_dim` differs from the environment's `EnvSpec.physics_dim`.
+    """
+    if not info.physics_dim or info.env_id not in SUPPORTED_ENVS:
+        return
+    expected = make_env_spec(info.env_id, info.env_kwargs).physics_dim
+    if info.physics_dim != expected:
+        raise UserError(
+            f"{where}: its physics states have {info.physics_dim} numbers per step, but the "
+            f"MuJoCo state of {info.env_id} has {expected}; {fix}"
+        )
