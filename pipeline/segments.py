@@ -31,6 +31,8 @@ FORMAT_VERSION = 1
 _ARRAYS_FILE = "segments.safetensors"
 _META_FILE = "segments.json"
 _STD_FLOOR = 1e-6
+# Keys of segments.json (any other missing key is one of the arrays).
+_META_KEYS = ("format_version", "dataset", "window", "stride", "seed", "splits", "stats")
 
 
 @dataclass
@@ -243,7 +245,8 @@ def load_segments(directory: str | Path) -> Segments:
     """Load what `save_segments` wrote (no pickle: safetensors + JSON).
 
     Raises:
-        UserError: the directory or its files are missing or unreadable.
+        UserError: the directory or its files are missing, unreadable, lack an entry, or disagree
+            with each other (e.g. a `segments.json` from another run than the arrays).
     """
     directory = Path(directory)
     meta_path, arrays_path = directory / _META_FILE, directory / _ARRAYS_FILE
@@ -256,19 +259,79 @@ def load_segments(directory: str | Path) -> Segments:
         raise UserError(
             f"{directory}: segments are unreadable ({exc}); re-run `oposm segment`"
         ) from exc
+    if not isinstance(meta, dict):
+        raise UserError(f"{meta_path} is not a JSON object; re-run `oposm segment`")
     if meta.get("format_version") != FORMAT_VERSION:
         raise UserError(f"{directory}: segments format is outdated; re-run `oposm segment`")
-    return Segments(
-        info=DatasetInfo(**meta["dataset"]),
-        window=int(meta["window"]),
-        stride=int(meta["stride"]),
-        states=arrays["states"],
-        actions=arrays["actions"],
-        physics=arrays.get("physics"),
-        episode_offsets=arrays["episode_offsets"],
-        episode_index=arrays["episode_index"],
-        episode_split=arrays["episode_split"],
-        starts={s: arrays[f"starts_{s}"] for s in SPLITS},
-        stats=NormStats.from_json(meta["stats"]),
-        seed=int(meta["seed"]),
-    )
+    try:
+        segments = Segments(
+            info=DatasetInfo(**meta["dataset"]),
+            window=int(meta["window"]),
+            stride=int(meta["stride"]),
+            states=arrays["states"],
+            actions=arrays["actions"],
+            physics=arrays.get("physics"),
+            episode_offsets=arrays["episode_offsets"],
+            episode_index=arrays["episode_index"],
+            episode_split=arrays["episode_split"],
+            starts={s: arrays[f"starts_{s}"] for s in SPLITS},
+            stats=NormStats.from_json(meta["stats"]),
+            seed=int(meta["seed"]),
+        )
+    except KeyError as exc:
+        key = exc.args[0] if exc.args else "?"
+        where = _META_FILE if key in _META_KEYS else _ARRAYS_FILE
+        raise UserError(
+            f"{directory}: {where} has no '{key}' entry; re-run `oposm segment`"
+        ) from exc
+    except (TypeError, ValueError) as exc:
+        raise UserError(
+            f"{directory}: {_META_FILE} has a malformed entry ({exc}); re-run `oposm segment`"
+        ) from exc
+    problem = _inconsistency(segments)
+    if problem:
+        raise UserError(f"{directory}: {problem}; re-run `oposm segment`")
+    return segments
+
+
+def _inconsistency(seg: Segments) -> str | None:
+    """What disagrees between the arrays and the metadata of loaded segments, or None."""
+    n_steps = len(seg.states)
+    stats = seg.stats
+    expected = {
+        "states": (n_steps, seg.info.state_dim),
+        "actions": (n_steps, seg.info.action_dim),
+        "physics": None if seg.physics is None else (n_steps, seg.info.physics_dim),
+        "state stats": (seg.info.state_dim,) * 2,
+        "action stats": (seg.info.action_dim,) * 2,
+    }
+    shapes = {
+        "states": seg.states.shape,
+        "actions": seg.actions.shape,
+        "physics": None if seg.physics is None else seg.physics.shape,
+        "state stats": (len(stats.state_mean), len(stats.state_std)),
+        "action stats": (len(stats.action_mean), len(stats.action_std)),
+    }
+    for name, want in expected.items():
+        if shapes[name] != want:
+            return (
+                f"{name} have shape {shapes[name]} but {_META_FILE} describes {want} "
+                "(files from different runs?)"
+            )
+    offsets = seg.episode_offsets
+    n_episodes = len(offsets) - 1
+    if (
+        n_episodes < 0
+        or offsets[0] != 0
+        or offsets[-1] != n_steps
+        or np.any(np.diff(offsets) < 0)
+        or len(seg.episode_index) != n_episodes
+        or len(seg.episode_split) != n_episodes
+    ):
+        return "the episode index does not match the stored steps"
+    if seg.window < 2 or seg.stride < 1:
+        return f"window {seg.window} / stride {seg.stride} are invalid"
+    for split, starts in seg.starts.items():
+        if starts.size and (starts.min() < 0 or starts.max() + seg.window > n_steps):
+            return f"{split} windows of {seg.window} states run past the {n_steps} stored steps"
+    return None

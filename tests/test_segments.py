@@ -121,3 +121,44 @@ def test_load_missing_or_corrupt_segments_is_a_user_error(tmp_path, info):
     (tmp_path / "seg" / "segments.safetensors").write_bytes(b"garbage")
     with pytest.raises(UserError, match="unreadable"):
         load_segments(tmp_path / "seg")
+
+
+def _edit_meta(directory, edit):
+    import json
+
+    path = directory / "segments.json"
+    meta = json.loads(path.read_text())
+    edit(meta)
+    path.write_text(json.dumps(meta))
+
+
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        (lambda m: m.pop("window"), "segments.json has no 'window' entry"),
+        (lambda m: m.pop("stats"), "segments.json has no 'stats' entry"),
+        (lambda m: m.update(window="forty"), "malformed entry"),
+        (lambda m: m["dataset"].update(colour="red"), "malformed entry"),
+        (lambda m: m["dataset"].update(state_names=["x", "y", "vx"]), "states have shape"),
+        (lambda m: m["stats"].update(action_std=[1.0]), "action stats have shape"),
+        (lambda m: m.update(window=10_000), "windows of 10000 states run past"),
+    ],
+    ids=["no window", "no stats", "bad window", "unknown info key", "state dim", "stats", "long"],
+)
+def test_segments_json_missing_an_entry_or_mismatched_is_a_user_error(
+    tmp_path, info, edit, message
+):
+    save_segments(_segments(info), tmp_path / "seg")
+    _edit_meta(tmp_path / "seg", edit)
+    with pytest.raises(UserError, match=message) as caught:
+        load_segments(tmp_path / "seg")
+    text = str(caught.value)
+    assert str(tmp_path / "seg") in text and "re-run `oposm segment`" in text
+    assert "\n" not in text
+
+
+def test_segments_json_that_is_not_an_object_is_a_user_error(tmp_path, info):
+    save_segments(_segments(info), tmp_path / "seg")
+    (tmp_path / "seg" / "segments.json").write_text("[1, 2]")
+    with pytest.raises(UserError, match="not a JSON object"):
+        load_segments(tmp_path / "seg")
