@@ -41,25 +41,27 @@ def direction_speed(
     falls = 0
     with global_seed(seed):
         env = make_direction_env(resample_interval, max_episode_steps)
-        dt = float(env.unwrapped.dt)
-        obs, _ = env.reset(seed=seed)
-        for _ in range(episodes):
-            obs, _ = env.reset()
-            done, steps, forward, sideways = False, 0, 0.0, 0.0
-            while not done:
-                xy = env.unwrapped.data.qpos[:2].copy()
-                direction = obs[-2:].copy()
-                obs, reward, terminated, truncated, info = env.step(actor.act(obs))
-                delta = info["xy"] - xy
-                forward += float(reward)
-                sideways += abs(float(delta[0] * -direction[1] + delta[1] * direction[0]))
-                steps += 1
-                done = terminated or truncated
-            falls += int(terminated)
-            lengths.append(steps)
-            along.append(forward / (steps * dt))
-            across.append(sideways / (steps * dt))
-        env.close()
+        try:
+            dt = float(env.unwrapped.dt)
+            obs, _ = env.reset(seed=seed)
+            for _ in range(episodes):
+                obs, _ = env.reset()
+                done, steps, forward, sideways = False, 0, 0.0, 0.0
+                while not done:
+                    xy = env.unwrapped.data.qpos[:2].copy()
+                    direction = obs[-2:].copy()
+                    obs, reward, terminated, truncated, info = env.step(actor.act(obs))
+                    delta = info["xy"] - xy
+                    forward += float(reward)
+                    sideways += abs(float(delta[0] * -direction[1] + delta[1] * direction[0]))
+                    steps += 1
+                    done = terminated or truncated
+                falls += int(terminated)
+                lengths.append(steps)
+                along.append(forward / (steps * dt))
+                across.append(sideways / (steps * dt))
+        finally:
+            env.close()
     return {
         "episodes": episodes,
         "speed_along_command_mean": float(np.mean(along)),
@@ -89,30 +91,34 @@ def maze_success(
     tasks = []
     with global_seed(seed):
         env = make_ant_maze(env_id, max_episode_steps)
-        env.reset(seed=seed)
-        env.unwrapped.action_space.seed(seed)  # the random settling steps of OGBench's reset
-        for task_id in range(1, env.unwrapped.num_tasks + 1):
-            wins, steps_to_goal = 0, []
-            for _ in range(episodes_per_task):
-                ob, _ = env.reset(options={"task_id": task_id})
-                done, steps, success = False, 0, False
-                while not done:
-                    obs = expert_observation(ob, oracle_direction(env))
-                    ob, _, terminated, truncated, info = env.step(actor.act(obs))
-                    steps += 1
-                    success = success or bool(info["success"])
-                    done = terminated or truncated
-                wins += int(success)
-                if success:
-                    steps_to_goal.append(steps)
-            tasks.append(
-                {
-                    "task_id": task_id,
-                    **_rate(wins, episodes_per_task),
-                    "steps_to_goal_mean": float(np.mean(steps_to_goal)) if steps_to_goal else None,
-                }
-            )
-        env.close()
+        try:
+            env.reset(seed=seed)
+            env.unwrapped.action_space.seed(seed)  # the random settling steps of OGBench's reset
+            for task_id in range(1, env.unwrapped.num_tasks + 1):
+                wins, steps_to_goal = 0, []
+                for _ in range(episodes_per_task):
+                    ob, _ = env.reset(options={"task_id": task_id})
+                    done, steps, success = False, 0, False
+                    while not done:
+                        obs = expert_observation(ob, oracle_direction(env))
+                        ob, _, terminated, truncated, info = env.step(actor.act(obs))
+                        steps += 1
+                        success = success or bool(info["success"])
+                        done = terminated or truncated
+                    wins += int(success)
+                    if success:
+                        steps_to_goal.append(steps)
+                tasks.append(
+                    {
+                        "task_id": task_id,
+                        **_rate(wins, episodes_per_task),
+                        "steps_to_goal_mean": float(np.mean(steps_to_goal))
+                        if steps_to_goal
+                        else None,
+                    }
+                )
+        finally:
+            env.close()
     total = sum(t["successes"] for t in tasks)
     return {"tasks": tasks, "overall": _rate(total, episodes_per_task * len(tasks))}
 

@@ -280,36 +280,38 @@ def _train(
 ) -> TrainSummary:
     torch.set_num_threads(cfg.threads)
     env = make_direction_env(cfg.resample_interval, cfg.max_episode_steps)
-    folder = resume_dir(out)
-    if (folder / _STATE).exists():
-        model = _load(cfg, env, folder)
-        log.info("resuming from step %d (%s)", model.num_timesteps, folder)
-    else:
-        model = build_sac(cfg, env)
-    start = model.num_timesteps
-    actor_info = {
-        "robot": "ant",
-        "env": "online-ant-v0 + GymXYWrapper (OGBench)",
-        "observation": "ant qpos[2:] (13) + qvel (14) + commanded unit direction (2)",
-        "action": "deterministic: tanh(mean) rescaled to the action bounds",
-        "trainer": "stable-baselines3 SAC",
-        "seed": cfg.seed,
-        "sac": cfg.model_dump(),
-        **(info or {}),
-    }
-    t0 = time.monotonic()
-    remaining = cfg.total_steps - start
-    if remaining > 0:
-        checkpointer = _Checkpointer(cfg, out, actor_info, start)
-        model.learn(
-            total_timesteps=remaining,
-            callback=[checkpointer, *callbacks],
-            reset_num_timesteps=start == 0,
-            log_interval=None,  # no stable-baselines3 logs: the progress bar and log report
-        )
-    seconds = time.monotonic() - t0
-    steps = model.num_timesteps
-    env.close()
+    try:
+        folder = resume_dir(out)
+        if (folder / _STATE).exists():
+            model = _load(cfg, env, folder)
+            log.info("resuming from step %d (%s)", model.num_timesteps, folder)
+        else:
+            model = build_sac(cfg, env)
+        start = model.num_timesteps
+        actor_info = {
+            "robot": "ant",
+            "env": "online-ant-v0 + GymXYWrapper (OGBench)",
+            "observation": "ant qpos[2:] (13) + qvel (14) + commanded unit direction (2)",
+            "action": "deterministic: tanh(mean) rescaled to the action bounds",
+            "trainer": "stable-baselines3 SAC",
+            "seed": cfg.seed,
+            "sac": cfg.model_dump(),
+            **(info or {}),
+        }
+        t0 = time.monotonic()
+        remaining = cfg.total_steps - start
+        if remaining > 0:
+            checkpointer = _Checkpointer(cfg, out, actor_info, start)
+            model.learn(
+                total_timesteps=remaining,
+                callback=[checkpointer, *callbacks],
+                reset_num_timesteps=start == 0,
+                log_interval=None,  # no stable-baselines3 logs: the progress bar and log report
+            )
+        seconds = time.monotonic() - t0
+        steps = model.num_timesteps
+    finally:
+        env.close()
     return TrainSummary(
         steps=steps,
         start_steps=start,

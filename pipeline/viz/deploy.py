@@ -159,12 +159,14 @@ def write_episode_recording(
     pos, dt = list(env.goal_dims), env.dt
     rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_name(result))
     with atomic_path(path) as tmp:
-        rec.save(tmp, default_blueprint=deploy_blueprint(env.layout))
-        rec.send_recording_name(recording_name(result))
-        log_maze(rec, env.layout)
-        _log_task(rec, result, pos, success_radius)
-        rec.log("summary", rr.TextDocument(_summary(result, pos, dt)), static=True)
-        _log_agent(rec, result, pos, dt, success_radius)
-        _log_plans(rec, result, pos, dt)
-        rec.flush()
-        rec.disconnect()
+        try:  # the file is closed before it is renamed into place, or removed after an error
+            rec.save(tmp, default_blueprint=deploy_blueprint(env.layout))
+            rec.send_recording_name(recording_name(result))
+            log_maze(rec, env.layout)
+            _log_task(rec, result, pos, success_radius)
+            rec.log("summary", rr.TextDocument(_summary(result, pos, dt)), static=True)
+            _log_agent(rec, result, pos, dt, success_radius)
+            _log_plans(rec, result, pos, dt)
+            rec.flush()
+        finally:
+            rec.disconnect()

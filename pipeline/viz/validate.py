@@ -75,17 +75,21 @@ def write_recording(path: str | Path, v: OpenLoopResult, spec: EnvSpec, n_starts
     n = min(n_starts, len(v.starts))
     rec = rr.RecordingStream("oposm_validate", recording_id="oposm-validate")
     with atomic_path(path) as tmp:
-        rec.save(tmp)
-        log_maze(rec, spec.layout)
-        views = []
-        for mode, result in v.modes.items():
-            for i in range(n):
-                base = f"{mode}/start_{i}"
-                rows = slice(i * v.repeats, (i + 1) * v.repeats)
-                _log_start(rec, base, result, rows, pos, spec.dt)
-                views.append(
-                    rrb.Spatial2DView(name=base, origin="/", contents=["/maze/**", f"/{base}/**"])
-                )
-        rec.send_blueprint(rrb.Blueprint(rrb.Grid(*views), collapse_panels=True))
-        rec.flush()
-        rec.disconnect()
+        try:  # the file is closed before it is renamed into place, or removed after an error
+            rec.save(tmp)
+            log_maze(rec, spec.layout)
+            views = []
+            for mode, result in v.modes.items():
+                for i in range(n):
+                    base = f"{mode}/start_{i}"
+                    rows = slice(i * v.repeats, (i + 1) * v.repeats)
+                    _log_start(rec, base, result, rows, pos, spec.dt)
+                    views.append(
+                        rrb.Spatial2DView(
+                            name=base, origin="/", contents=["/maze/**", f"/{base}/**"]
+                        )
+                    )
+            rec.send_blueprint(rrb.Blueprint(rrb.Grid(*views), collapse_panels=True))
+            rec.flush()
+        finally:
+            rec.disconnect()
