@@ -105,9 +105,46 @@ def _fail(message: str, status: int = 1) -> None:
     raise typer.Exit(status)
 
 
+# What to lower when a command runs out of GPU memory (by command function name), most
+# effective first, and its device param.
+_MEMORY_PARAMS: dict[str, tuple[tuple[str, ...], str]] = {
+    "train": (("train.batch_size", "train.val_windows", "train.hidden"), "train.device"),
+    "dynamics": (("dynamics.batch_size", "dynamics.val_transitions"), "dynamics.device"),
+    "validate": (("validate.particles", "validate.starts"), "validate.device"),
+    "deploy": (("deploy.num_envs", "deploy.planner.candidates"), "deploy.device"),
+    "bench_train": (("train.batch_size", "train.hidden"), "train.device"),
+    "bench_plan": (("--envs", "deploy.planner.candidates"), "deploy.device"),
+}
+
+
+def _out_of_memory(exc: BaseException) -> bool:
+    """Whether `exc` is PyTorch running out of accelerator memory. Checked without importing
+    torch (the CLI starts without it): if torch was never imported it cannot have raised."""
+    torch = sys.modules.get("torch")
+    oom = getattr(torch, "OutOfMemoryError", None)
+    if isinstance(oom, type) and isinstance(exc, oom):
+        return True
+    text = str(exc)
+    return isinstance(exc, RuntimeError) and "CUDA" in text and "out of memory" in text.lower()
+
+
+def _out_of_memory_message(command: str, exc: BaseException) -> str:
+    """One line: which command ran out of GPU memory, how much it asked for, what to lower."""
+    asked = re.search(r"Tried to allocate [\d.]+ ?[KMGT]?i?B", str(exc))
+    what = f" ({asked.group(0).replace('Tried', 'tried')})" if asked else ""
+    name = f"oposm {command.replace('_', ' ')}"
+    if command not in _MEMORY_PARAMS:
+        return f"out of GPU memory in `{name}`{what}; lower its batch sizes, or use the CPU"
+    lower, device = _MEMORY_PARAMS[command]
+    return (
+        f"out of GPU memory in `{name}`{what}; lower {' or '.join(lower)}, or run on the CPU "
+        f"with -S {device}=cpu"
+    )
+
+
 def _user_errors(fn: Callable[..., Any]) -> Callable[..., Any]:
-    """Turn a `UserError` or an `OSError` into one line on stderr and exit status 1 (no
-    traceback)."""
+    """Turn a `UserError`, an `OSError` or running out of GPU memory into one line on stderr and
+    exit status 1 (no traceback)."""
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
@@ -119,6 +156,10 @@ def _user_errors(fn: Callable[..., Any]) -> Callable[..., Any]:
             _fail(f"error: {_os_error_message(exc)}")
         except KeyboardInterrupt:
             _fail("interrupted; no partial output was kept", status=130)
+        except Exception as exc:
+            if not _out_of_memory(exc):
+                raise
+            _fail(f"error: {_out_of_memory_message(fn.__name__, exc)}")
 
     return wrapper
 

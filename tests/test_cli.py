@@ -282,3 +282,57 @@ def test_segment_refuses_a_dataset_whose_physics_states_have_the_wrong_size(tmp_
     assert str(demos / "tiny.mcap") in line and "oposm ingest" in line
     assert "have 6 numbers" in line and "PointMaze_Medium-v3 has 5" in line
     assert not (tmp_path / "d/segments").exists()
+
+
+@pytest.mark.parametrize(
+    ("stage", "lower"),
+    [
+        ("train", "train.batch_size"),
+        ("dynamics", "dynamics.batch_size"),
+        ("validate", "validate.particles"),
+        ("deploy", "deploy.num_envs"),
+    ],
+)
+def test_cuda_out_of_memory_is_one_line_saying_which_params_to_lower(
+    workdir, monkeypatch, stage, lower
+):
+    import importlib
+
+    import torch
+
+    def runs_out(params, paths):
+        raise torch.cuda.OutOfMemoryError(
+            "CUDA out of memory. Tried to allocate 2.00 GiB. GPU 0 has a total capacity of "
+            "79.19 GiB of which 1.06 GiB is free.\nIncluding non-PyTorch memory, ..."
+        )
+
+    monkeypatch.setattr(importlib.import_module(f"stages.{stage}"), "run", runs_out)
+    _, common = workdir
+    line = _one_line_error(runner.invoke(app, [stage, *common]))
+    assert f"`oposm {stage}`" in line and "(tried to allocate 2.00 GiB)" in line
+    assert lower in line and f"-S {stage}.device=cpu" in line
+
+
+def test_the_params_named_for_out_of_memory_are_real_keys():
+    from cli import _MEMORY_PARAMS
+    from pipeline.config import load_params
+
+    defaults = load_params(Path(__file__).resolve().parents[1] / "params.yaml").model_dump()
+    for lower, device in _MEMORY_PARAMS.values():
+        for key in [*lower, device]:
+            if key.startswith("--"):
+                continue
+            node = defaults
+            for part in key.split("."):
+                assert isinstance(node, dict) and part in node, f"{key} is not a param"
+                node = node[part]
+
+
+def test_the_cli_starts_without_importing_torch():
+    import subprocess
+    import sys
+
+    code = "import sys, cli; print('torch' in sys.modules)"
+    root = Path(__file__).resolve().parents[1]
+    out = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True)
+    assert out.stdout.strip() == "False", out.stderr
