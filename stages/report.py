@@ -25,7 +25,7 @@ def _pick(report: Report, keys: list[str]) -> Report:
 
 
 def _ingest(r: Report) -> Report:
-    return _pick(r, ["episodes", "steps", "goals_per_1000_steps", "n_problems", "seconds"])
+    return _pick(r, ["episodes", "steps", "goals_per_1000_steps"])
 
 
 def _segment(r: Report) -> Report:
@@ -40,7 +40,7 @@ def _train(r: Report) -> Report:
 
 
 def _dynamics(r: Report) -> Report:
-    return _pick(r, ["val_nll", "val_rmse", "wall_s"])
+    return _pick(r, ["val_nll", "val_rmse"])
 
 
 def _validate(r: Report) -> Report:
@@ -48,10 +48,11 @@ def _validate(r: Report) -> Report:
     out: Report = {}
     horizons = sorted(r.get("prior", {}), key=lambda k: int(k.split("_")[-1]))
     for key in dict.fromkeys([horizons[0], horizons[-1]] if horizons else []):
-        h = r["prior"][key]
-        out[f"prior_{key}"] = _pick(
-            h, ["tawm_error_mean", "single_step_error_mean", "tawm_nll", "tawm_within_1sigma"]
-        )
+        h, k = r["prior"][key], key.split("_")[-1]
+        out[f"tawm_error_{k}"] = _round(h["tawm_error_mean"])
+        out[f"single_step_error_{k}"] = _round(h["single_step_error_mean"])
+    if horizons:
+        out["tawm_within_1sigma_1"] = _round(r["prior"][horizons[0]]["tawm_within_1sigma"])
     return out
 
 
