@@ -109,6 +109,31 @@ def test_a_kill_during_a_checkpoint_write_loses_nothing(tmp_path):
     assert sorted(p.name for p in tmp_path.glob(".*-resume*")) == []
 
 
+class _Signal(BaseCallback):
+    """Sends this process a signal at `at` steps (what `kill PID` or Ctrl-C does)."""
+
+    def __init__(self, at: int, signum: int) -> None:
+        super().__init__()
+        self.at, self.signum = at, signum
+
+    def _on_step(self) -> bool:
+        if self.num_timesteps == self.at:
+            os.kill(os.getpid(), self.signum)
+        return True
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+def test_sigterm_or_sigint_checkpoints_the_current_step_and_stops(tmp_path, signum):
+    handler = signal.getsignal(signum)
+    summary = train_direction_expert(tiny(), tmp_path, callbacks=[_Signal(123, signum)])
+    assert (summary.steps, summary.finished) == (123, False)
+    assert yaml.safe_load((resume_dir(tmp_path) / "state.json").read_text())["steps"] == 123
+    watch = _Watch()
+    assert train_direction_expert(tiny(), tmp_path, callbacks=[watch]).finished
+    assert (watch.steps, watch.replay) == (123, 123)
+    assert signal.getsignal(signum) is handler  # restored
+
+
 def test_one_trainer_per_folder(tmp_path):
     with (tmp_path / ".lock").open("w") as held:
         fcntl.flock(held, fcntl.LOCK_EX)

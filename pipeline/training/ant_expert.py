@@ -22,7 +22,9 @@ import fcntl
 import json
 import logging
 import shutil
+import signal
 import sys
+import threading
 import time
 from collections import deque
 from collections.abc import Iterator, Sequence
@@ -132,6 +134,7 @@ class _Checkpointer(BaseCallback):
         self.rewards: deque[float] = deque(maxlen=cfg.log_every)
         self.bar: tqdm | None = None
         self.dt = 1.0
+        self.stop_signal: int | None = None
 
     def _on_training_start(self) -> None:
         self.dt = float(self.training_env.envs[0].unwrapped.dt)
@@ -154,6 +157,12 @@ class _Checkpointer(BaseCallback):
         return True
 
     def _on_rollout_start(self) -> None:
+        if self.stop_signal is not None:
+            if self.num_timesteps > self.last_checkpoint:
+                self.save()
+            if self.bar is not None:
+                self.bar.close()
+            raise _Stopped(self.stop_signal)
         if self.num_timesteps - self.last_checkpoint >= self.cfg.checkpoint_every:
             self.save()
 
@@ -198,6 +207,29 @@ class _Checkpointer(BaseCallback):
         save_actor(export_actor(self.model, self.cfg, info), self.out / ACTOR_FILE)
         self.last_checkpoint = steps
         log.info("checkpoint at step %d in %s", steps, resume_dir(self.out))
+
+
+class _Stopped(Exception):
+    """A stop was requested by a signal; the checkpoint of the current step is written."""
+
+
+@contextlib.contextmanager
+def _checkpoint_on_signals(checkpointer: _Checkpointer) -> Iterator[None]:
+    """SIGTERM or SIGINT: finish the step, checkpoint it and stop, instead of losing up to
+    `checkpoint_every` steps (SIGKILL still loses them; the previous checkpoint stays valid)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def request(signum: int, frame: Any) -> None:
+        checkpointer.stop_signal = signum
+
+    previous = {s: signal.signal(s, request) for s in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
 
 
 def _load(cfg: SACParams, env: Any, folder: Path) -> SAC:
@@ -302,12 +334,16 @@ def _train(
         remaining = cfg.total_steps - start
         if remaining > 0:
             checkpointer = _Checkpointer(cfg, out, actor_info, start)
-            model.learn(
-                total_timesteps=remaining,
-                callback=[checkpointer, *callbacks],
-                reset_num_timesteps=start == 0,
-                log_interval=None,  # no stable-baselines3 logs: the progress bar and log report
-            )
+            try:
+                with _checkpoint_on_signals(checkpointer):
+                    model.learn(
+                        total_timesteps=remaining,
+                        callback=[checkpointer, *callbacks],
+                        reset_num_timesteps=start == 0,
+                        log_interval=None,  # no stable-baselines3 logs: the progress bar reports
+                    )
+            except _Stopped as stop:
+                log.info("signal %s: checkpointed step %d and stopped", stop, model.num_timesteps)
         seconds = time.monotonic() - t0
         steps = model.num_timesteps
     finally:
