@@ -303,6 +303,22 @@ _stage_command(
     """,
 )
 _stage_command(
+    "bc",
+    """Fit the Gaussian behaviour-cloning policy p(a | s): LLP's action prior (paper §4.2).
+
+    On the train split's steps (maximum likelihood, best validation NLL kept); writes
+    data/models/<ingest.name>-bc/. `deploy.agents: [llp]` plans with it and `oposm dynamics`.
+    """,
+)
+_stage_command(
+    "gcbc",
+    """Fit goal-conditioned behaviour cloning p(a | s, g), OGBench's GCBC baseline.
+
+    Goals are later states of the same episode (x-y), drawn as OGBench's GCBC draws them; writes
+    data/models/<ingest.name>-gcbc/. `deploy.agents: [gcbc]` runs it closed loop.
+    """,
+)
+_stage_command(
     "validate",
     """Check the world model against held-out open-loop rollouts in MuJoCo (paper §4.1, fig. 4).
 
@@ -316,14 +332,17 @@ _stage_command(
 )
 _stage_command(
     "deploy",
-    """Plan skill sequences in MuJoCo for new goals and report success (paper §3, §4.2).
+    """Run agents in MuJoCo towards new goals and report success (paper §3, §4.2, table 4).
 
-    Model-predictive control: CEM over `deploy.planner.horizon` whitened skills, rolled forward
-    with the world model, for `deploy.num_envs` environments at once; the first skill runs for
-    tau steps with the low-level policy, then it replans. Tasks: random_goal (goals from the
-    training data), corners (D4RL's opposite corners), goal (deploy.goal). Writes
-    data/reports/deploy.json (success with 95 % Wilson intervals, steps, planning latency),
-    data/reports/deploy/episodes.json and data/recordings/deploy/*.rrd (`oposm view`).
+    `oposm` (default): model-predictive control, CEM over `deploy.planner.horizon` whitened
+    skills rolled forward with the world model, for `deploy.num_envs` environments at once; the
+    first skill runs for tau steps with the low-level policy, then it replans. Baselines on the
+    same episodes (`-S deploy.agents=[oposm,llp,gcbc,expert]`): llp (CEM over whitened actions
+    with the single-step model, `oposm dynamics` + `oposm bc`), gcbc (`oposm gcbc`), expert (the
+    data's scripted controller). Tasks: random_goal (goals from the training data), corners
+    (D4RL's opposite corners), goal (deploy.goal). Writes data/reports/deploy/report.json
+    (success with 95 % Wilson intervals, steps, planning time and FLOPs per replan, OPOSM vs
+    LLP), data/reports/deploy/episodes.json and data/recordings/deploy/*.rrd (`oposm view`).
     """,
     show=_deploy_summary,
 )
@@ -508,8 +527,12 @@ def bench_plan(
     set_: SetOption = None,
     data: DataOption = Path("data"),
 ) -> None:
-    """Planning latency per replan (one env) and plans/s (--envs at once), for deploy.planner
-    and the paper's table 14 params. Needs a trained model (`oposm train`)."""
+    """Planning time and FLOPs per replan, OPOSM vs LLP, interleaved in one process.
+
+    One-env replans (p50/p95) and --envs at once (per env, plans/s) for deploy.planner, the
+    paper's table 14, deploy.llp (the paper code's LLP) and LLP at its timing figure's L 400,
+    100 iterations; FLOPs counted by torch. Needs `oposm train` (and `oposm dynamics`,
+    `oposm bc` for LLP)."""
     from bench.plan import bench_plan as run
     from pipeline.paths import Paths
 

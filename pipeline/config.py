@@ -176,6 +176,39 @@ class DynamicsParams(_Section):
     )
 
 
+class PolicyParams(_Section):
+    """What `bc` and `gcbc` share: a Gaussian MLP policy fit by maximum likelihood."""
+
+    hidden: int = Field(128, ge=1, description="Width of every hidden layer.")
+    min_std: float = Field(1e-4, gt=0, description="Floor added to the predicted std.")
+    learned_std: bool = Field(
+        True, description="Predict the action std; false: fixed at 1 (normalized units)."
+    )
+    batch_size: int = Field(256, ge=1, description="Steps per Adam step.")
+    lr: float = Field(1e-3, gt=0, description="Adam learning rate.")
+    max_steps: int = Field(5000, ge=1, description="Adam steps.")
+    eval_every: int = Field(1000, ge=1, description="Steps between validations (best kept).")
+    val_transitions: int = Field(5000, ge=1, description="Validation steps (a fixed subset).")
+    seed: int = Field(0, description="Seed of initialization, sampling and goals.")
+    device: Literal["auto", "cpu", "cuda"] = Field(
+        "auto", description="auto: CUDA when available, else CPU."
+    )
+
+
+class BCParams(PolicyParams):
+    """`oposm bc`: the Gaussian BC policy p(a | s) whose mean and std whiten LLP's actions
+    (paper §4.2; the paper code: h 512, lr 1e-4, batch 100)."""
+
+
+class GCBCParams(PolicyParams):
+    """`oposm gcbc`: goal-conditioned BC p(a | s, g), hindsight goals as OGBench's GCBC (its
+    defaults: 3 x 512 GELU MLP, constant std, lr 3e-4, batch 1024, 1M steps)."""
+
+    learned_std: bool = Field(
+        False, description="Predict the action std; false: fixed at 1 (OGBench: const_std)."
+    )
+
+
 class ValidateParams(_Section):
     """`oposm validate`: TAWM vs single-step model on held-out open-loop rollouts (paper §4.1)."""
 
@@ -220,9 +253,70 @@ class PlannerParams(_Section):
         return self
 
 
-class DeployParams(_Section):
-    """`oposm deploy`: skill MPC in the maze of the training data, success rates, recordings."""
+class LLPParams(_Section):
+    """`deploy.llp`: CEM over whitened actions along the single-step model's predicted states
+    (paper §4.2, LLP). Defaults: the paper code's maze2d settings; its timing figure used
+    horizon 400 and 100 iterations."""
 
+    horizon: int = Field(20, ge=1, description="Actions per plan, L (paper code: 20).")
+    execute: int = Field(5, ge=1, description="Planned actions executed before replanning (5).")
+    candidates: int = Field(100, ge=1, description="Candidates per CEM iteration, K (100).")
+    elites: int = Field(20, ge=1, description="Candidates the Gaussian is refit to (20 %: 20).")
+    iterations: int = Field(5, ge=1, description="CEM iterations (paper code: 5).")
+    init_std: float = Field(1.0, gt=0, description="Initial epsilon std (1: the BC policy).")
+    min_std: float = Field(0.0, ge=0, description="Floor on the refit epsilon std.")
+    l2_penalty: float = Field(
+        0.01, ge=0, description="Weight of mean(eps^2) added to the task cost (paper code: 0.01)."
+    )
+    plan_from: Literal["mean", "best"] = Field(
+        "mean",
+        description="Execute CEM's final mean (the paper code) or the best candidate it saw.",
+    )
+    warm_start: bool = Field(
+        False, description="Start replans from the previous plan shifted (paper code: no)."
+    )
+    stop_cost: float | None = Field(
+        None, gt=0, description="Stop a plan once its objective is below this; null: never."
+    )
+
+    @model_validator(mode="after")
+    def _fits(self) -> LLPParams:
+        if self.elites > self.candidates:
+            raise ValueError(f"elites ({self.elites}) must be <= candidates ({self.candidates})")
+        if self.execute > self.horizon:
+            raise ValueError(f"execute ({self.execute}) must be <= horizon ({self.horizon})")
+        return self
+
+
+class GCBCAgentParams(_Section):
+    """`deploy.gcbc`: the goal-conditioned BC policy run closed loop."""
+
+    sample_actions: bool = Field(
+        False, description="Sample actions (else the mean: OGBench evaluates at temperature 0)."
+    )
+
+
+class ExpertAgentParams(_Section):
+    """`deploy.expert`: the scripted waypoint controller that made the data, as an agent."""
+
+    action_noise: float | None = Field(
+        None, ge=0, description="Std of its action noise; null: the dataset's (D4RL: 0.5)."
+    )
+
+
+AGENTS = ("oposm", "llp", "gcbc", "expert")
+
+
+class DeployParams(_Section):
+    """`oposm deploy`: agents (skill MPC and the baselines) in the maze of the training data,
+    success rates, planning cost, recordings."""
+
+    agents: list[Literal[AGENTS]] = Field(  # type: ignore[valid-type]
+        default_factory=lambda: ["oposm"],
+        min_length=1,
+        description="Agents run on the same episodes: oposm (skill MPC), llp (low-level "
+        "planning: `oposm dynamics` + `oposm bc`), gcbc (`oposm gcbc`), expert (the data's).",
+    )
     tasks: list[Literal["corners", "random_goal", "goal"]] = Field(
         default_factory=lambda: ["random_goal", "corners"],
         min_length=1,
@@ -241,12 +335,18 @@ class DeployParams(_Section):
         True, description="Sample a ~ pi(a | s, z) as in §3 (else the policy's mean action)."
     )
     max_steps: int | None = Field(
-        None, ge=1, description="Step limit per episode; null: D4RL's (300/600/800)."
+        None,
+        ge=1,
+        description="Step limit per episode; null: D4RL's (300/600/800). Longer runs also "
+        "report success within D4RL's limit (the paper code: 2000, `done` ignored).",
     )
     success_radius: float = Field(0.5, gt=0, description="Success distance (paper, D4RL: 0.5).")
     start_noise: float = Field(0.1, ge=0, description="Uniform +- noise on start positions (m).")
     record_episodes: int = Field(10, ge=0, description="Episodes per task with a recording.")
     planner: PlannerParams = Field(default_factory=PlannerParams)
+    llp: LLPParams = Field(default_factory=LLPParams)
+    gcbc: GCBCAgentParams = Field(default_factory=GCBCAgentParams)
+    expert: ExpertAgentParams = Field(default_factory=ExpertAgentParams)
     threads: int | None = Field(
         1, ge=1, description="Torch CPU threads; null: torch's default (all cores)."
     )
@@ -254,6 +354,12 @@ class DeployParams(_Section):
     device: Literal["auto", "cpu", "cuda"] = Field(
         "auto", description="auto: CUDA when available, else CPU (the simulator runs on CPU)."
     )
+
+    @model_validator(mode="after")
+    def _agents_once(self) -> DeployParams:
+        if len(set(self.agents)) != len(self.agents):
+            raise ValueError(f"each agent at most once, got {self.agents}")
+        return self
 
 
 class Params(_Section):
@@ -275,6 +381,8 @@ class Params(_Section):
     segment: SegmentParams = Field(default_factory=SegmentParams)
     train: TrainParams = Field(default_factory=TrainParams)
     dynamics: DynamicsParams = Field(default_factory=DynamicsParams)
+    bc: BCParams = Field(default_factory=BCParams)
+    gcbc: GCBCParams = Field(default_factory=GCBCParams)
     validation: ValidateParams = Field(default_factory=ValidateParams, alias="validate")
     deploy: DeployParams = Field(default_factory=DeployParams)
 

@@ -61,6 +61,10 @@ class Paths:
         """The single-step model `data/models/<name>-dynamics/` (beside the skill model)."""
         return self.root / "models" / f"{name}-dynamics"
 
+    def policy(self, name: str, kind: str) -> Path:
+        """A behaviour-cloning policy `data/models/<name>-<kind>/` (`kind`: bc | gcbc)."""
+        return self.root / "models" / f"{name}-{kind}"
+
     def scratch(self, stage: str, key: str) -> Path:
         """Resumable work of a stage, keyed by what it computes: `data/scratch/<stage>/<key>/`.
 

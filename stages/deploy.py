@@ -1,14 +1,20 @@
-"""Deploy stage: skill MPC in the maze of the training data; success rates, latency, recordings.
+"""Deploy stage: the agents of `deploy.agents` in the maze of the training data, on the same
+episodes; success rates, planning cost, recordings.
 
-Reads the model (`data/models/<name>/`) and the segments (training-data locations, the goals of
-`random_goal`); writes `data/reports/deploy.json` (DVC metrics), `data/reports/deploy/episodes.json`
-(one row per episode) and `data/recordings/deploy/<task>-<episode>.rrd`.
+Agents: `oposm` (skill MPC with the skill model, `data/models/<name>/`), `llp` (low-level planning
+with the single-step model `<name>-dynamics/` and the BC policy `<name>-bc/`), `gcbc` (the
+goal-conditioned policy `<name>-gcbc/`), `expert` (the scripted controller that made the data).
+Every agent runs the same episodes (tasks, starts, goals, seeds) under the same step limit and
+success rule. Writes `data/reports/deploy/report.json` (one section per agent, and OPOSM vs LLP when
+both ran), `data/reports/deploy/episodes.json` (one row per agent and episode) and
+`data/recordings/deploy/<agent>-<task>-<episode>.rrd`.
 """
 
 from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -16,21 +22,27 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from pipeline.config import DeployParams, Params, PlannerParams
+from pipeline.config import DeployParams, LLPParams, Params, PlannerParams
 from pipeline.devices import resolve_device, torch_threads
 from pipeline.envs.batch import BatchSim
-from pipeline.envs.spec import make_env_spec
+from pipeline.envs.expert import ExpertConfig
+from pipeline.envs.spec import EnvSpec, make_env_spec
 from pipeline.errors import UserError
 from pipeline.evaluation.compat import check_model_dims, check_same_environment
 from pipeline.evaluation.episodes import EpisodeResult, PlanCall, RunConfig, run_episodes
+from pipeline.evaluation.flops import replan_flops
+from pipeline.evaluation.report import compare_planners
 from pipeline.evaluation.stats import latency_summary, task_summary
-from pipeline.evaluation.tasks import MazeTasks, check_task, train_locations
+from pipeline.evaluation.tasks import EpisodeSpec, MazeTasks, check_task, train_locations
 from pipeline.io import atomic_dir, write_json
-from pipeline.model import load_model
+from pipeline.model.checkpoint import load_dynamics, load_model, load_policy
 from pipeline.paths import Paths
-from pipeline.planning import CEMConfig, PlannerConfig, SkillPlanner
+from pipeline.planning.agents import Agent, ExpertAgent, PolicyAgent
+from pipeline.planning.cem import CEMConfig
+from pipeline.planning.llp import LLPConfig, LowLevelMPC, LowLevelPlanner
 from pipeline.planning.mpc import SkillMPC
-from pipeline.segments import load_segments
+from pipeline.planning.skills import PlannerConfig, SkillPlanner
+from pipeline.segments import Segments, load_segments
 from pipeline.viz.deploy import recording_name, write_episode_recording
 from stages.report import write_report
 
@@ -38,7 +50,7 @@ log = logging.getLogger(__name__)
 
 
 def planner_config(p: PlannerParams) -> PlannerConfig:
-    """`deploy.planner` params -> the planner's config."""
+    """`deploy.planner` params -> the skill planner's config."""
     return PlannerConfig(
         horizon=p.horizon,
         cem=CEMConfig(p.candidates, p.elites, p.iterations, p.min_std, p.stop_cost),
@@ -48,22 +60,161 @@ def planner_config(p: PlannerParams) -> PlannerConfig:
     )
 
 
+def llp_config(p: LLPParams) -> LLPConfig:
+    """`deploy.llp` params -> the low-level planner's config."""
+    return LLPConfig(
+        horizon=p.horizon,
+        execute=p.execute,
+        cem=CEMConfig(p.candidates, p.elites, p.iterations, p.min_std, p.stop_cost),
+        init_std=p.init_std,
+        l2_penalty=p.l2_penalty,
+        plan_from=p.plan_from,
+        warm_start=p.warm_start,
+    )
+
+
+@dataclass
+class AgentSetup:
+    """An agent ready to run: how often it replans and what the report says about it."""
+
+    agent: Agent
+    replan_every: int | None
+    about: dict[str, Any] = field(default_factory=dict)
+
+
+def _check(meta: dict, segments: Segments, spec: EnvSpec, dims: tuple[int, int], what: str):
+    check_same_environment(segments.info, meta, what)
+    check_model_dims(*dims, spec, what)
+
+
+def _oposm(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, device) -> AgentSetup:
+    cfg, name = params.deploy, params.ingest.name
+    model_dir = paths.existing(paths.model(name))
+    model, meta = load_model(model_dir, device=device)
+    what = f"the model in {model_dir}"
+    _check(meta, segments, spec, (model.config.state_dim, model.config.action_dim), what)
+    if segments.info.name != meta.get("dataset"):
+        raise UserError(
+            f"{paths.segments(name)} holds dataset '{segments.info.name}' but the model was "
+            f"trained on '{meta.get('dataset')}'; re-run `oposm train`"
+        )
+    planner = SkillPlanner(model, planner_config(cfg.planner))
+    return AgentSetup(
+        SkillMPC(model, planner, cfg.sample_actions, spec.goal_dims),
+        cfg.replan_every or int(meta["window"]) - 1,
+        {"model": str(model_dir), "model_step": meta.get("step"), **cfg.planner.model_dump()},
+    )
+
+
+def _llp(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, device) -> AgentSetup:
+    cfg, name = params.deploy.llp, params.ingest.name
+    dyn_dir = paths.existing(paths.dynamics(name))
+    dynamics, dyn_meta = load_dynamics(dyn_dir, device=device)
+    d = dynamics.config
+    _check(dyn_meta, segments, spec, (d.state_dim, d.action_dim), f"the model in {dyn_dir}")
+    bc_dir = paths.existing(paths.policy(name, "bc"))
+    policy, bc_meta = load_policy(bc_dir, "bc", device=device)
+    p = policy.config
+    _check(bc_meta, segments, spec, (p.state_dim, p.action_dim), f"the policy in {bc_dir}")
+    planner = LowLevelPlanner(policy, dynamics, llp_config(cfg))
+    return AgentSetup(
+        LowLevelMPC(planner, spec.goal_dims),
+        cfg.execute,
+        {"dynamics": str(dyn_dir), "bc": str(bc_dir), **cfg.model_dump()},
+    )
+
+
+def _gcbc(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, device) -> AgentSetup:
+    policy_dir = paths.existing(paths.policy(params.ingest.name, "gcbc"))
+    policy, meta = load_policy(policy_dir, "gcbc", device=device)
+    p = policy.config
+    _check(meta, segments, spec, (p.state_dim, p.action_dim), f"the policy in {policy_dir}")
+    if p.goal_dims != tuple(spec.goal_dims):
+        raise UserError(
+            f"the policy in {policy_dir} takes goals in state dims {list(p.goal_dims)}, "
+            f"{spec.env_id} gives {list(spec.goal_dims)}; re-run `oposm gcbc`"
+        )
+    sample = params.deploy.gcbc.sample_actions
+    return AgentSetup(
+        PolicyAgent(policy, sample), None, {"policy": str(policy_dir), "sample_actions": sample}
+    )
+
+
+def _expert(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, device) -> AgentSetup:
+    recorded = (segments.info.generator or {}).get("expert")
+    config = ExpertConfig(**recorded) if recorded else ExpertConfig()
+    if params.deploy.expert.action_noise is not None:
+        config.action_noise = params.deploy.expert.action_noise
+    source = "the dataset's" if recorded else "D4RL's defaults (the dataset records none)"
+    return AgentSetup(
+        ExpertAgent(spec.layout, config), None, {"config": source, **config.to_dict()}
+    )
+
+
+BUILDERS = {"oposm": _oposm, "llp": _llp, "gcbc": _gcbc, "expert": _expert}
+
+
+def build_agent(
+    name: str, params: Params, paths: Paths, segments: Segments, spec: EnvSpec, device
+) -> AgentSetup:
+    """Load what agent `name` needs and build it; a missing model names the stage to run.
+
+    Raises:
+        UserError: an unknown agent (the message lists the valid ones), or its models are
+            missing, corrupt or from another environment.
+    """
+    if name not in BUILDERS:
+        raise UserError(f"unknown agent {name!r}; use one of: {', '.join(BUILDERS)}")
+    try:
+        return BUILDERS[name](params, paths, segments, spec, device)
+    except UserError as exc:
+        raise UserError(f"agent {name}: {exc}") from exc
+
+
 def _record(
-    results: list[EpisodeResult], cfg: DeployParams, envs: BatchSim, directory: Path, radius: float
+    results: list[EpisodeResult], cfg: DeployParams, spec: EnvSpec, directory: Path, radius: float
 ) -> int:
     """Write the recordings of the episodes numbered below `deploy.record_episodes`."""
     chosen = [r for r in results if r.spec.index < cfg.record_episodes]
     for r in chosen:
-        write_episode_recording(directory / f"{recording_name(r)}.rrd", r, envs.spec, radius)
+        write_episode_recording(directory / f"{recording_name(r)}.rrd", r, spec, radius)
     return len(chosen)
 
 
 def run(params: Params, paths: Paths, progress: bool = True) -> dict[str, Any]:
-    """Deploy the trained model on `deploy.tasks`; write the report and recordings; return the
-    report. Uses `deploy.threads` torch threads while it runs (one by default: the batches are
-    small, and intra-op threads that wait on a busy core cost more than they give)."""
+    """Deploy the agents of `deploy.agents` on `deploy.tasks`; write the report and recordings;
+    return the report. Uses `deploy.threads` torch threads while it runs (one by default: the
+    batches are small, and intra-op threads that wait on a busy core cost more than they give)."""
     with torch_threads(params.deploy.threads):
         return _run(params, paths, progress)
+
+
+def _run_agent(
+    setup: AgentSetup,
+    envs: BatchSim,
+    specs: dict[str, list[EpisodeSpec]],
+    run_cfg: RunConfig,
+    record: Any,
+    progress: bool,
+) -> tuple[dict[str, list[EpisodeResult]], list[PlanCall]]:
+    """All tasks' episodes of one agent; `record(results)` after each wave."""
+    results: dict[str, list[EpisodeResult]] = {}
+    calls: list[PlanCall] = []
+    name = setup.agent.name
+    for task, task_specs in specs.items():
+        bar = tqdm(
+            total=len(task_specs), desc=f"{name} {task}", unit="episode", disable=not progress
+        )
+
+        def on_wave(done: list[EpisodeResult], bar=bar) -> None:
+            record(done)
+            bar.update(len(done))
+            bar.set_postfix(success=f"{np.mean([r.success for r in done]):.2f}")
+
+        results[task], task_calls = run_episodes(setup.agent, envs, task_specs, run_cfg, on_wave)
+        calls += task_calls
+        bar.close()
+    return results, calls
 
 
 def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
@@ -71,20 +222,9 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
     for task in cfg.tasks:
         check_task(task)
     device = resolve_device(cfg.device, "deploy.device")
-    model_dir = paths.existing(paths.model(name))
-    model, meta = load_model(model_dir, device=device)
     segments = load_segments(paths.existing(paths.segments(name)))
-    info = segments.info
-    check_same_environment(info, meta, f"the model in {model_dir}")
-    if info.name != meta.get("dataset"):
-        raise UserError(
-            f"{paths.segments(name)} holds dataset '{info.name}' but the model was "
-            f"trained on '{meta.get('dataset')}'; re-run `oposm train`"
-        )
-    spec = make_env_spec(info.env_id, info.env_kwargs)
-    check_model_dims(
-        model.config.state_dim, model.config.action_dim, spec, f"the model in {model_dir}"
-    )
+    spec = make_env_spec(segments.info.env_id, segments.info.env_kwargs)
+    setups = {a: build_agent(a, params, paths, segments, spec, device) for a in cfg.agents}
 
     started = time.perf_counter()
     envs = BatchSim(spec, min(cfg.num_envs, cfg.episodes))
@@ -92,50 +232,56 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
     locations = train_locations(segments, spec.goal_dims)
     tasks = MazeTasks(spec.layout, locations, cfg.start_noise, goal, cfg.seed)
     specs = {task: tasks.episodes(task, cfg.episodes) for task in cfg.tasks}  # checks first
-    planner = SkillPlanner(model, planner_config(cfg.planner))
-    agent = SkillMPC(model, planner, cfg.sample_actions, spec.goal_dims)
-    run_cfg = RunConfig(
-        max_steps=cfg.max_steps or spec.max_episode_steps,
-        replan_every=cfg.replan_every or int(meta["window"]) - 1,
-        success_radius=cfg.success_radius,
-    )
+    max_steps = cfg.max_steps or spec.max_episode_steps
+    limits = [spec.max_episode_steps] if max_steps > spec.max_episode_steps else []
 
-    results: dict[str, list[EpisodeResult]] = {}
-    calls: list[PlanCall] = []
+    by_agent: dict[str, Any] = {}
+    rows: list[dict] = []
     recordings = paths.recordings("deploy")
     recorded = 0
     with atomic_dir(recordings) as tmp:
-        for task in cfg.tasks:
-            bar = tqdm(total=cfg.episodes, desc=task, unit="episode", disable=not progress)
+        for agent_name, setup in setups.items():
+            run_cfg = RunConfig(max_steps, setup.replan_every, cfg.success_radius)
 
-            def on_wave(done: list[EpisodeResult], bar=bar) -> None:
+            def record(done: list[EpisodeResult]) -> None:
                 nonlocal recorded
-                recorded += _record(done, cfg, envs, tmp, run_cfg.success_radius)
-                bar.update(len(done))
-                bar.set_postfix(success=f"{np.mean([r.success for r in done]):.2f}")
+                recorded += _record(done, cfg, spec, tmp, cfg.success_radius)
 
-            results[task], task_calls = run_episodes(agent, envs, specs[task], run_cfg, on_wave)
-            calls += task_calls
-            bar.close()
+            flops = None
+            if setup.replan_every is not None:  # counted on the first episode's start and goal
+                first = next(iter(specs.values()))[0]
+                flops = replan_flops(setup.agent, first.start, first.goal, first.seed)
+            agent_started = time.perf_counter()
+            results, calls = _run_agent(setup, envs, specs, run_cfg, record, progress)
+            by_agent[agent_name] = {
+                **{task: task_summary(r, spec.dt, limits) for task, r in results.items()},
+                "replan_every": setup.replan_every,
+                "flops_per_replan": flops,
+                "planning": latency_summary(calls),
+                "wall_s": time.perf_counter() - agent_started,
+                "settings": setup.about,
+            }
+            rows += [r.to_json() for task in cfg.tasks for r in results[task]]
 
     report: dict[str, Any] = {
         "dataset": name,
         "env_id": spec.env_id,
-        "model_step": meta.get("step"),
         "device": str(device),
         "torch_threads": torch.get_num_threads(),
+        "agents": list(cfg.agents),
         "tasks": list(cfg.tasks),
-        "episodes": sum(len(r) for r in results.values()),
-        "success_radius": run_cfg.success_radius,
-        "max_steps": run_cfg.max_steps,
-        "replan_every": run_cfg.replan_every,
-        **{task: task_summary(r, spec.dt) for task, r in results.items()},
-        "planning": latency_summary(calls),
+        "episodes": len(rows),
+        "episodes_per_task": cfg.episodes,
+        "success_radius": cfg.success_radius,
+        "max_steps": max_steps,
+        "shorter_limits": limits,
+        "by_agent": by_agent,
         "wall_s": time.perf_counter() - started,
         "recordings": str(recordings),
         "recorded_episodes": recorded,
     }
-    rows = [r.to_json() for task in cfg.tasks for r in results[task]]
+    if "oposm" in by_agent and "llp" in by_agent:
+        report["oposm_vs_llp"] = compare_planners(report, "oposm", "llp")
     write_json(paths.live("deploy") / "episodes.json", rows)
     write_report(paths, "deploy", report)
     return report

@@ -43,6 +43,10 @@ def _dynamics(r: Report) -> Report:
     return _pick(r, ["val_nll", "val_rmse"])
 
 
+def _policy(r: Report) -> Report:
+    return _pick(r, ["val_nll", "val_action_rmse"])
+
+
 def _validate(r: Report) -> Report:
     """Prior skills (what planning uses): errors at one skill and at the longest horizon."""
     out: Report = {}
@@ -56,19 +60,31 @@ def _validate(r: Report) -> Report:
     return out
 
 
-def _deploy(r: Report) -> Report:
+def _deploy_agent(a: Report, tasks: list[str]) -> Report:
     out: Report = {}
-    for task in r.get("tasks", []):
-        t = r[task]
+    for task in tasks:
+        t = a[task]
         out[task] = {
             "success": _round(t["success_rate"]),
             "ci95_low": _round(t["success_ci95_low"]),
             "ci95_high": _round(t["success_ci95_high"]),
             "episodes": t["episodes"],
             "steps_to_goal_p50": _round((t.get("steps_to_goal") or {}).get("p50")),
+        } | {
+            f"success_within_{k}": _round(w["success_rate"])
+            for k, w in t.get("within_steps", {}).items()
         }
-    latency = (r.get("planning") or {}).get("per_env_latency_s") or {}
-    return out | {"plan_s_p50": _round(latency.get("p50")), "wall_s": _round(r.get("wall_s"))}
+    latency = (a.get("planning") or {}).get("per_env_latency_s") or {}
+    return out | {"plan_s_p50": _round(latency.get("p50"), 6), "flops": a.get("flops_per_replan")}
+
+
+def _deploy(r: Report) -> Report:
+    """Per agent: success per task, replan time (one env's share) and FLOPs per replan."""
+    tasks = r.get("tasks", [])
+    out: Report = {a: _deploy_agent(r["by_agent"][a], tasks) for a in r.get("agents", [])}
+    if (c := r.get("oposm_vs_llp")) is not None:
+        out["llp_over_oposm_replan_s"] = _round(c["replan_s_p50"]["llp_over_oposm"])
+    return out | {"wall_s": _round(r.get("wall_s"))}
 
 
 HEADLINES: dict[str, Callable[[Report], Report]] = {
@@ -76,6 +92,8 @@ HEADLINES: dict[str, Callable[[Report], Report]] = {
     "segment": _segment,
     "train": _train,
     "dynamics": _dynamics,
+    "bc": _policy,
+    "gcbc": _policy,
     "validate": _validate,
     "deploy": _deploy,
 }

@@ -1,5 +1,6 @@
 """Deploy: tasks, batched simulators, success statistics, failure isolation, and the real
-`oposm deploy` on a tiny trained model with its report and Rerun recordings read back."""
+`oposm deploy` of all four agents (oposm, llp, gcbc, expert) on tiny trained models with its report
+and Rerun recordings read back."""
 
 import json
 import shutil
@@ -136,20 +137,26 @@ TINY = {
     "ingest": {"name": "tiny", "episodes": 6, "episode_steps": 150, "seed": 1},
     "segment": {"window": 11},
     "train": {"z_dim": 4, "hidden": 32, "batch_size": 32, "max_steps": 30, "eval_every": 10},
+    "dynamics": {"hidden": 16, "max_steps": 30, "eval_every": 15, "val_transitions": 200},
+    "bc": {"hidden": 16, "max_steps": 30, "eval_every": 15, "val_transitions": 200},
+    "gcbc": {"hidden": 16, "max_steps": 30, "eval_every": 15, "val_transitions": 200},
     "deploy": {
+        "agents": ["oposm", "llp", "gcbc", "expert"],
         "tasks": ["random_goal", "corners"],
         "episodes": 3,
         "num_envs": 2,
         "max_steps": 40,
         "record_episodes": 2,
         "planner": {"horizon": 3, "candidates": 16, "elites": 4, "iterations": 3},
+        "llp": {"horizon": 6, "execute": 3, "candidates": 16, "elites": 4, "iterations": 2},
     },
 }
+AGENTS = TINY["deploy"]["agents"]
 
 
 @pytest.fixture(scope="module")
 def project(tmp_path_factory):
-    """Tiny real data, a tiny trained model and a deploy run, all through the real CLI."""
+    """Tiny real data, tiny trained models and a deploy run, all through the real CLI."""
     root = tmp_path_factory.mktemp("deploy")
     (root / "params.yaml").write_text(yaml.safe_dump(TINY))
     common = ["--params", str(root / "params.yaml"), "--data", str(root / "data")]
@@ -157,7 +164,7 @@ def project(tmp_path_factory):
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        for command in ("ingest", "segment", "train", "deploy"):
+        for command in ("ingest", "segment", "train", "dynamics", "bc", "gcbc", "deploy"):
             result = runner.invoke(app, [command, *common])
             assert result.exit_code == 0, result.output
     finally:
@@ -168,32 +175,52 @@ def project(tmp_path_factory):
 def test_deploy_writes_a_valid_report_and_prints_a_summary(project):
     root, _, output = project
     report = json.loads((root / "data/reports/deploy/report.json").read_text())
-    assert report["episodes"] == 6 and report["tasks"] == ["random_goal", "corners"]
-    for task in ("random_goal", "corners"):
-        t = report[task]
-        assert t["episodes"] == 3 and t["errors"] == 0
-        assert 0 <= t["success_ci95_low"] <= t["success_rate"] <= t["success_ci95_high"] <= 1
-        assert t["success_rate_r045"] <= t["success_rate"]
-        assert f"  {task}" in output
-    planning = report["planning"]
-    # Waves of 2 envs; replan every T = 10 steps (window 11) for 40 steps: 4 replans per wave.
-    assert report["replan_every"] == 10 and planning["calls"] >= 4
-    assert planning["call_latency_s"]["p50"] <= planning["call_latency_s"]["p95"]
+    assert report["episodes"] == 24 and report["tasks"] == ["random_goal", "corners"]
+    assert report["agents"] == AGENTS and list(report["by_agent"]) == AGENTS
+    for agent in AGENTS:
+        assert f"  {agent} (" in output
+        for task in ("random_goal", "corners"):
+            t = report["by_agent"][agent][task]
+            assert t["episodes"] == 3 and t["errors"] == 0
+            assert 0 <= t["success_ci95_low"] <= t["success_rate"] <= t["success_ci95_high"] <= 1
+            assert t["success_rate_r045"] <= t["success_rate"]
+    oposm, llp = report["by_agent"]["oposm"], report["by_agent"]["llp"]
+    # Waves of 2 envs; replan every T = 10 steps (window 11) for 40 steps: 4 replans per wave;
+    # LLP every `execute` = 3 steps: 14 per wave. Static agents never plan.
+    assert oposm["replan_every"] == 10 and oposm["planning"]["calls"] >= 4
+    assert llp["replan_every"] == 3 and llp["planning"]["calls"] >= 14
+    for r in (oposm, llp):
+        latency = r["planning"]["per_env_latency_s"]
+        assert 0 < latency["p50"] <= latency["p95"] and r["flops_per_replan"] > 0
+    # LLP: 2 iterations x 16 candidates x 6 steps of BC + dynamics; OPOSM: 3 x 16 x 3 skills.
+    assert llp["flops_per_replan"] != oposm["flops_per_replan"]
+    for agent in ("gcbc", "expert"):
+        assert report["by_agent"][agent]["planning"]["calls"] == 0
+        assert report["by_agent"][agent]["flops_per_replan"] is None
+    compared = report["oposm_vs_llp"]
+    assert compared["replan_s_p50"]["llp_over_oposm"] > 0 and "corners" in compared
     rows = json.loads((root / "data/reports/deploy/episodes.json").read_text())
-    assert len(rows) == 6 and {r["task"] for r in rows} == {"random_goal", "corners"}
-    assert "recordings" in output and "95 % CI" in output
+    assert len(rows) == 24 and {r["agent"] for r in rows} == set(AGENTS)
+    # Every agent ran the same episodes: same starts, goals and seeds.
+    by_agent = {a: [(r["task"], r["seed"], r["start"], r["goal"]) for r in rows if r["agent"] == a]
+                for a in AGENTS}  # fmt: skip
+    assert all(by_agent[a] == by_agent["oposm"] for a in AGENTS)
+    assert "recordings" in output and "95 % CI" in output and "oposm vs llp" in output
+    headline = json.loads((root / "metrics/deploy.json").read_text())
+    assert set(headline) >= {*AGENTS, "wall_s"} and "success" in headline["llp"]["corners"]
 
 
 def test_recordings_load_back_with_rerun(project):
     root, _, _ = project
     files = sorted((root / "data/recordings/deploy").glob("*.rrd"))
     assert [f.stem for f in files] == [
-        "corners-0000", "corners-0001", "random_goal-0000", "random_goal-0001"
+        f"{agent}-{task}-{k:04d}"
+        for agent in sorted(AGENTS) for task in ("corners", "random_goal") for k in (0, 1)
     ]  # fmt: skip
-    rows = {r["task"] + str(r["episode"]): r for r in json.loads(
+    rows = {r["agent"] + r["task"] + str(r["episode"]): r for r in json.loads(
         (root / "data/reports/deploy/episodes.json").read_text())}  # fmt: skip
-    reader = RrdReader(files[0])
-    assert [r.recording_id for r in reader.recordings()] == ["corners-0000"]
+    reader = RrdReader(root / "data/recordings/deploy/oposm-corners-0000.rrd")
+    assert [r.recording_id for r in reader.recordings()] == ["oposm-corners-0000"]
     assert len(reader.blueprints()) == 1  # the default layout travels with the file
     store = reader.store()
     schema = store.schema()
@@ -208,14 +235,21 @@ def test_recordings_load_back_with_rerun(project):
     chunks = list(store.stream())
     distance_rows = sum(c.num_rows for c in chunks if c.entity_path == "/metrics/distance_to_goal")
     plan_rows = sum(c.num_rows for c in chunks if c.entity_path == "/plan/states")
-    row = rows["corners0"]
+    row = rows["oposmcorners0"]
     assert distance_rows == row["steps"] + 1 and plan_rows == row["replans"]
+    # LLP's recording draws its predicted low-level path (one point per planned action).
+    store = RrdReader(root / "data/recordings/deploy/llp-corners-0000.rrd").store()
+    chunks = list(store.stream())
+    plan_rows = sum(c.num_rows for c in chunks if c.entity_path == "/plan/path")
+    assert plan_rows == rows["llpcorners0"]["replans"] > 0
+    static = RrdReader(root / "data/recordings/deploy/gcbc-corners-0000.rrd").store()
+    assert "/plan/path" not in set(static.schema().entity_paths())
 
 
 def test_view_lists_the_recordings(project):
     root, _, _ = project
     result = runner.invoke(app, ["view", str(root / "data/recordings/deploy"), "--dry-run"])
-    assert result.exit_code == 0 and result.output.count(".rrd") == 4
+    assert result.exit_code == 0 and result.output.count(".rrd") == 16
     assert "-m rerun" in result.output
 
 
@@ -233,6 +267,8 @@ def test_bad_deploy_inputs_are_one_line_errors(project, tmp_path):
     args = ["deploy", *common, "-S", "deploy.tasks=[goal]", "-S", "deploy.goal=[9.0, 0.0]"]
     assert "outside the maze" in _one_line_error(runner.invoke(app, args))
     assert "no recordings" in _one_line_error(runner.invoke(app, ["view", str(tmp_path)]))
+    line = _one_line_error(runner.invoke(app, ["deploy", *common, "-S", "deploy.agents=[llm]"]))
+    assert "deploy.agents" in line and "'oposm', 'llp', 'gcbc' or 'expert'" in line
     # A checkpoint whose states are not the maze's [x, y, vx, vy].
     model, meta = load_model(root / "data/models/tiny")
     wrong = SkillModel(SkillModelConfig(6, 2, z_dim=4, hidden=32))
@@ -265,12 +301,31 @@ def test_model_from_another_maze_than_the_segments_is_a_one_line_error(project, 
 
 def test_summary_without_any_success_says_so():
     spec = EpisodeSpec("corners", 0, np.zeros(4), np.ones(2), 0)
-    failed = EpisodeResult(spec, steps=600, min_distance=2.0, final_distance=2.5)
+    failed = EpisodeResult(spec, steps=2000, min_distance=2.0, final_distance=2.5)
+    agent = {"corners": task_summary([failed], 0.01, [600]), "planning": latency_summary([]),
+             "wall_s": 1.0, "flops_per_replan": None}  # fmt: skip
     report = {
-        "dataset": "d", "env_id": ENV_ID, "model_step": 10, "episodes": 1, "wall_s": 1.0,
-        "device": "cpu", "tasks": ["corners"], "success_radius": 0.5,
-        "corners": task_summary([failed], 0.01), "planning": latency_summary([]),
-        "recordings": "data/recordings/deploy", "recorded_episodes": 0,
+        "dataset": "d", "env_id": ENV_ID, "agents": ["gcbc"], "episodes": 1, "wall_s": 1.0,
+        "max_steps": 2000, "device": "cpu", "tasks": ["corners"], "success_radius": 0.5,
+        "by_agent": {"gcbc": agent}, "recordings": "data/recordings/deploy",
+        "recorded_episodes": 0,
     }  # fmt: skip
-    line = format_summary(report).splitlines()[1]
+    line = format_summary(report).splitlines()[2]
     assert "no episode reached the goal" in line and "None" not in line
+    assert "0.0 % within 600 steps" in line
+
+
+def test_an_agent_without_its_model_names_the_stage_to_run(project, tmp_path):
+    root, _, _ = project
+    data = tmp_path / "data"
+    shutil.copytree(root / "data/models/tiny", data / "models/tiny")
+    (data / "segments").mkdir(parents=True)
+    (data / "segments/tiny").symlink_to(root / "data/segments/tiny")
+    base = ["deploy", "--params", str(root / "params.yaml"), "--data", str(data), "-S"]
+    line = _one_line_error(runner.invoke(app, [*base, "deploy.agents=[oposm,llp]"]))
+    assert line.startswith("error: agent llp: no dynamics model") and "`oposm dynamics`" in line
+    shutil.copytree(root / "data/models/tiny-dynamics", data / "models/tiny-dynamics")
+    line = _one_line_error(runner.invoke(app, [*base, "deploy.agents=[llp]"]))
+    assert "agent llp: no bc policy" in line and "run `oposm bc` first" in line
+    line = _one_line_error(runner.invoke(app, [*base, "deploy.agents=[gcbc]"]))
+    assert "agent gcbc: no gcbc policy" in line and "run `oposm gcbc` first" in line

@@ -18,6 +18,8 @@ TINY = {
     "segment": {"window": 20},
     "train": {"z_dim": 4, "hidden": 16, "max_steps": 20, "eval_every": 10, "val_windows": 50},
     "dynamics": {"hidden": 16, "max_steps": 50, "eval_every": 25, "val_transitions": 200},
+    "bc": {"hidden": 16, "max_steps": 50, "eval_every": 25, "val_transitions": 200},
+    "gcbc": {"hidden": 16, "max_steps": 50, "eval_every": 25, "val_transitions": 200},
     "validate": {"starts": 5, "skills": 2, "repeats": 2, "particles": 8, "record_starts": 1},
     "deploy": {
         "episodes": 2,
@@ -94,7 +96,7 @@ def test_dvc_repro_experiments_compare_and_models_come_back_from_the_cache(repo)
     first = _dvc(repo, "repro")
     assert "Running stage 'ingest'" in first and "Running stage 'segment'" in first
     assert "Running stage 'deploy'" in first and "random_goal  success" in first
-    for stage in ("ingest", "segment", "train", "dynamics", "validate", "deploy"):
+    for stage in ("ingest", "segment", "train", "dynamics", "bc", "gcbc", "validate", "deploy"):
         assert (repo / f"metrics/{stage}.json").exists(), stage
     metrics = _dvc(repo, "metrics", "show")
     assert "train_windows" in metrics and "best_val_st_nll" in metrics
@@ -126,7 +128,7 @@ def test_dvc_repro_experiments_compare_and_models_come_back_from_the_cache(repo)
     for name in ("short", "seed1", "workspace"):
         nll = metric(by_name[name], "best_val_st_nll")
         assert nll not in ("", "!", "-"), (name, nll)
-        assert metric(by_name[name], "random_goal.success") not in ("", "!", "-")
+        assert metric(by_name[name], "oposm.random_goal.success") not in ("", "!", "-")
     assert metric(by_name["short"], "best_step") == "10"
     assert metric(by_name["seed1"], "best_val_st_nll") != metric(
         by_name["short"], "best_val_st_nll"

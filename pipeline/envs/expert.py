@@ -138,6 +138,13 @@ class WaypointExpert:
         self.goal_x, self.goal_y = cx + dx, cy + dy
         self._plan(here)
 
+    def set_goal(self, x: float, y: float, goal_x: float, goal_y: float) -> None:
+        """Head for a given goal `(goal_x, goal_y)` from the ball at `(x, y)`: plan the path of
+        cells to it (what `new_goal` does for a random goal; deploy's `expert` agent)."""
+        self.goal_cell = self.cell_of(goal_x, goal_y)
+        self.goal_x, self.goal_y = float(goal_x), float(goal_y)
+        self._plan(self.cell_of(x, y))
+
     def _plan(self, start: Cell) -> None:
         """Waypoints: jittered centres of the cells after `start` on a shortest path, then goal."""
         dist = self._distances(self.goal_cell)

@@ -1,7 +1,9 @@
-"""Closed-loop evaluation episodes: many environments stepped together under one skill MPC agent.
+"""Closed-loop evaluation episodes: many environments stepped together under one agent (skill MPC,
+low-level planning, a goal-conditioned policy or the scripted expert: `pipeline.planning.agents`).
 
 Episodes run in waves of as many as there are environment slots. All episodes of a wave start
-together, so they replan at the same steps (every tau) with one batched planning call; an episode
+together, so they replan at the same steps (every `replan_every`; never for an agent that does not
+plan) with one batched planning call; an episode
 that reaches its goal, runs out of steps or fails drops out of the batch. A failure (an exception in
 one slot's simulation, a non-finite action or prediction) ends that episode only, with its error
 recorded; an exception in a batched call ends the episodes in that call; the other results stay.
@@ -19,7 +21,7 @@ import torch
 
 from pipeline.envs.batch import BatchSim
 from pipeline.evaluation.tasks import EpisodeSpec
-from pipeline.planning.mpc import SkillMPC
+from pipeline.planning.agents import Agent
 
 log = logging.getLogger(__name__)
 
@@ -30,13 +32,14 @@ class RunConfig:
 
     Attributes:
         max_steps: Step limit per episode (D4RL: 300 umaze, 600 medium, 800 large).
-        replan_every: Steps each skill runs before replanning [tau].
+        replan_every: Steps between replans (a skill's tau, LLP's executed actions); None: the
+            agent never plans (a static policy).
         success_radius: Success = within this distance of the goal (paper, D4RL: 0.5).
         gym_radius: Also reported: gymnasium-robotics' success distance (0.45).
     """
 
     max_steps: int
-    replan_every: int
+    replan_every: int | None
     success_radius: float = 0.5
     gym_radius: float = 0.45
 
@@ -49,7 +52,8 @@ class EpisodeTrace:
         states: `[n + 1, sd]` s_0 .. s_n.
         actions: `[n, ad]` the actions sent.
         replan_steps: Step index of each replan.
-        plans: Per replan, `[L + 1, sd]` the TAWM's predicted states of the chosen plan.
+        plans: Per replan, `[P + 1, sd]` the predicted states of the chosen plan (the TAWM's per
+            skill, or the single-step model's per action for LLP).
         plan_costs: Per replan, the plan's predicted cost.
     """
 
@@ -72,7 +76,10 @@ class EpisodeResult:
         min_distance: Closest distance to the goal.
         final_distance: Distance at the end.
         replans: Planning calls for this episode.
+        plan_seconds: Wall time of its planning: its share of each batched call (call time /
+            episodes planned together).
         error: What failed, or None.
+        agent: The agent's name.
         trace: States, actions and plans.
     """
 
@@ -83,7 +90,9 @@ class EpisodeResult:
     min_distance: float = float("inf")
     final_distance: float = float("inf")
     replans: int = 0
+    plan_seconds: float = 0.0
     error: str | None = None
+    agent: str = ""
     trace: EpisodeTrace = field(default_factory=EpisodeTrace)
 
     @property
@@ -93,6 +102,7 @@ class EpisodeResult:
     def to_json(self) -> dict:
         s = self.spec
         return {
+            "agent": self.agent,
             "task": s.task,
             "episode": s.index,
             "seed": s.seed,
@@ -106,6 +116,7 @@ class EpisodeResult:
             "min_distance": self.min_distance,
             "final_distance": self.final_distance,
             "replans": self.replans,
+            "plan_seconds": self.plan_seconds,
             "error": self.error,
         }
 
@@ -147,18 +158,20 @@ class _Wave:
         return self.results[i].spec.task, self.results[i].spec.index
 
 
-def _replan(agent: SkillMPC, wave: _Wave, rows: np.ndarray, t: int, calls: list[PlanCall]) -> None:
+def _replan(agent: Agent, wave: _Wave, rows: np.ndarray, t: int, calls: list[PlanCall]) -> None:
     started = time.perf_counter()
     plan = agent.replan(rows, wave.states[rows])
     if plan.states.device.type == "cuda":
         torch.cuda.synchronize()
     calls.append(PlanCall(time.perf_counter() - started, len(rows)))
+    share = calls[-1].seconds / len(rows)
     predicted = plan.states.double().cpu().numpy()
     costs = plan.cost.double().cpu().numpy()
     finite = np.isfinite(costs) & np.isfinite(predicted).all(axis=(1, 2))
     for j, i in enumerate(rows):
         result = wave.results[i]
         result.replans += 1
+        result.plan_seconds += share
         result.trace.replan_steps.append(t)
         result.trace.plans.append(predicted[j])
         result.trace.plan_costs.append(float(costs[j]))
@@ -191,7 +204,7 @@ def _step(wave: _Wave, rows: np.ndarray, actions: np.ndarray, t: int, cfg: RunCo
 
 
 def run_wave(
-    agent: SkillMPC, envs: BatchSim, specs: list[EpisodeSpec], cfg: RunConfig
+    agent: Agent, envs: BatchSim, specs: list[EpisodeSpec], cfg: RunConfig
 ) -> tuple[list[EpisodeResult], list[PlanCall]]:
     """Run `len(specs) <= len(envs)` episodes together until each ends.
 
@@ -205,7 +218,7 @@ def run_wave(
         if rows.size == 0:
             break
         try:
-            if t % cfg.replan_every == 0:
+            if cfg.replan_every is not None and t % cfg.replan_every == 0:
                 _replan(agent, wave, rows, t, calls)
                 rows = np.flatnonzero(wave.alive)
             actions = agent.act(rows, wave.states[rows])
@@ -217,7 +230,7 @@ def run_wave(
 
 
 def run_episodes(
-    agent: SkillMPC,
+    agent: Agent,
     envs: BatchSim,
     specs: list[EpisodeSpec],
     cfg: RunConfig,
@@ -228,6 +241,8 @@ def run_episodes(
     calls: list[PlanCall] = []
     for start in range(0, len(specs), len(envs)):
         wave_results, wave_calls = run_wave(agent, envs, specs[start : start + len(envs)], cfg)
+        for r in wave_results:
+            r.agent = getattr(agent, "name", "")
         results += wave_results
         calls += wave_calls
         if on_wave is not None:

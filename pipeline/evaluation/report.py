@@ -1,4 +1,4 @@
-"""The deploy report: what `reports/deploy.json` holds and the summary printed after a run."""
+"""The deploy report: what `reports/deploy/report.json` holds, OPOSM vs LLP, the printed summary."""
 
 from __future__ import annotations
 
@@ -9,31 +9,94 @@ def _pct(x: float) -> str:
     return f"{100 * x:.1f} %"
 
 
-def format_summary(report: dict[str, Any]) -> str:
-    """Human-readable lines: success per task with its 95 % interval, latency, recordings."""
-    lines = [
-        f"deploy {report['dataset']} ({report['env_id']}, model step {report['model_step']}): "
-        f"{report['episodes']} episodes in {report['wall_s']:.0f} s on {report['device']}"
-    ]
+def _ratio(a: float | None, b: float | None) -> float | None:
+    return a / b if a is not None and b else None
+
+
+def compare_planners(report: dict[str, Any], ours: str, theirs: str) -> dict[str, Any]:
+    """The paper's comparison (§4.2, table 4) of two planning agents that ran the same episodes:
+    success per task (and the difference), planning time per replan (p50, p95: one environment's
+    share of a batched call) and per episode, FLOPs per replan, and `theirs / ours` ratios."""
+    a, b = report["by_agent"][ours], report["by_agent"][theirs]
+    out: dict[str, Any] = {}
     for task in report["tasks"]:
-        t = report[task]
-        steps = t["steps_to_goal"]["p50"]
-        reached = "no episode reached the goal"
-        if steps is not None:
-            reached = f"median {int(steps)} steps to goal"
+        out[task] = {
+            f"{ours}_success": a[task]["success_rate"],
+            f"{theirs}_success": b[task]["success_rate"],
+            "difference": a[task]["success_rate"] - b[task]["success_rate"],
+        }
+    for key in ("p50", "p95", "mean"):
+        x = a["planning"]["per_env_latency_s"][key]
+        y = b["planning"]["per_env_latency_s"][key]
+        out[f"replan_s_{key}"] = {ours: x, theirs: y, f"{theirs}_over_{ours}": _ratio(y, x)}
+    per_episode = {
+        agent: sum(r[t]["plan_seconds_per_episode"]["mean"] or 0.0 for t in report["tasks"])
+        / len(report["tasks"])
+        for agent, r in ((ours, a), (theirs, b))
+    }
+    out["plan_s_per_episode_mean"] = per_episode | {
+        f"{theirs}_over_{ours}": _ratio(per_episode[theirs], per_episode[ours])
+    }
+    fa, fb = a["flops_per_replan"], b["flops_per_replan"]
+    out["flops_per_replan"] = {ours: fa, theirs: fb, f"{theirs}_over_{ours}": _ratio(fb, fa)}
+    return out
+
+
+def _times(x: float | None) -> str:
+    return "n/a" if x is None else f"{x:.2f}x"
+
+
+def _task_line(task: str, t: dict[str, Any], radius: float) -> str:
+    steps = t["steps_to_goal"]["p50"]
+    reached = "no episode reached the goal"
+    if steps is not None:
+        reached = f"median {int(steps)} steps to goal"
+    within = "".join(
+        f"; {_pct(w['success_rate'])} within {limit} steps"
+        for limit, w in t.get("within_steps", {}).items()
+    )
+    return (
+        f"    {task:12s} success {t['successes']}/{t['episodes']} = {_pct(t['success_rate'])} "
+        f"[95 % CI {_pct(t['success_ci95_low'])} - {_pct(t['success_ci95_high'])}] "
+        f"within {radius:g} m{within}; {_pct(t['success_rate_r045'])} within 0.45 m; {reached}"
+        + (f"; {t['errors']} failed episodes" if t["errors"] else "")
+    )
+
+
+def _planning_line(r: dict[str, Any]) -> str | None:
+    p = r["planning"]
+    if not p["calls"]:
+        return None
+    per_env = p["per_env_latency_s"]
+    flops = r.get("flops_per_replan")
+    counted = f"; {flops / 1e6:,.1f} MFLOP per replan" if flops else ""
+    return (
+        f"    planning     {p['calls']} batched replans ({p['envs_per_call_mean']:.0f} envs "
+        f"each on average): per env p50 {per_env['p50'] * 1e3:.2f} ms, p95 "
+        f"{per_env['p95'] * 1e3:.2f} ms per replan; {p['plans_per_s']:.0f} plans/s{counted}"
+    )
+
+
+def format_summary(report: dict[str, Any]) -> str:
+    """Human-readable lines: per agent, success per task with its 95 % interval and planning
+    cost; OPOSM vs LLP when both ran; recordings."""
+    lines = [
+        f"deploy {report['dataset']} ({report['env_id']}): {', '.join(report['agents'])} on "
+        f"{report['episodes']} episodes (max {report['max_steps']} steps) in "
+        f"{report['wall_s']:.0f} s on {report['device']}"
+    ]
+    for agent in report["agents"]:
+        r = report["by_agent"][agent]
+        lines.append(f"  {agent} ({r['wall_s']:.0f} s)")
+        lines += [_task_line(task, r[task], report["success_radius"]) for task in report["tasks"]]
+        if (planning := _planning_line(r)) is not None:
+            lines.append(planning)
+    if (c := report.get("oposm_vs_llp")) is not None:
+        t = c["replan_s_p50"]
         lines.append(
-            f"  {task:12s} success {t['successes']}/{t['episodes']} = {_pct(t['success_rate'])} "
-            f"[95 % CI {_pct(t['success_ci95_low'])} - {_pct(t['success_ci95_high'])}] "
-            f"within {report['success_radius']:g} m; {_pct(t['success_rate_r045'])} within 0.45 m; "
-            f"{reached}" + (f"; {t['errors']} failed episodes" if t["errors"] else "")
-        )
-    p = report["planning"]
-    lat = p["call_latency_s"]
-    if p["calls"]:
-        lines.append(
-            f"  planning     {p['calls']} batched replans ({p['envs_per_call_mean']:.0f} envs "
-            f"each on average): p50 {lat['p50']:.3f} s, p95 {lat['p95']:.3f} s per call; "
-            f"{p['plans_per_s']:.0f} plans/s"
+            f"  oposm vs llp: replan p50 {t['oposm'] * 1e3:.2f} vs {t['llp'] * 1e3:.2f} ms "
+            f"(llp/oposm {_times(t['llp_over_oposm'])}); planning per episode "
+            f"{_times(c['plan_s_per_episode_mean']['llp_over_oposm'])}"
         )
     lines.append(
         f"  recordings   {report['recordings']} ({report['recorded_episodes']} episodes): "

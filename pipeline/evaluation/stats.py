@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from statistics import NormalDist
 
 import numpy as np
@@ -39,8 +40,24 @@ def _quantiles(values: list[float] | np.ndarray) -> dict[str, float | None]:
     }
 
 
-def task_summary(results: list[EpisodeResult], dt: float) -> dict:
-    """Success (paper's and gymnasium's radius) with 95 % Wilson intervals, steps and errors."""
+def success_within(results: list[EpisodeResult], limit: int) -> dict:
+    """Success within the first `limit` steps (e.g. D4RL's 600 in a 2000-step run), with its 95 %
+    Wilson interval. An episode runs the same up to `limit` whatever its own step limit, so one
+    long run gives the success rate of every shorter limit."""
+    n = len(results)
+    wins = sum(r.steps_to_goal is not None and r.steps_to_goal <= limit for r in results)
+    lo, hi = wilson_interval(wins, n)
+    return {
+        "successes": wins,
+        "success_rate": wins / n if n else 0.0,
+        "success_ci95_low": lo,
+        "success_ci95_high": hi,
+    }
+
+
+def task_summary(results: list[EpisodeResult], dt: float, limits: Sequence[int] = ()) -> dict:
+    """Success (paper's and gymnasium's radius) with 95 % Wilson intervals, steps, planning time
+    per episode and errors; success within each of the shorter step `limits` as well."""
     n = len(results)
     wins = sum(r.success for r in results)
     wins_gym = sum(r.steps_to_goal_gym is not None for r in results)
@@ -59,8 +76,10 @@ def task_summary(results: list[EpisodeResult], dt: float) -> dict:
         "steps_to_goal": _quantiles(steps),
         "seconds_to_goal_mean": float(np.mean(steps)) * dt if steps else None,
         "replans_mean": float(np.mean([r.replans for r in results])) if n else 0.0,
+        "plan_seconds_per_episode": _quantiles([r.plan_seconds for r in results]),
         "final_distance_mean": float(np.mean([r.final_distance for r in results])) if n else 0.0,
         "errors": sum(r.error is not None for r in results),
+        "within_steps": {str(k): success_within(results, k) for k in limits},
     }
 
 

@@ -1,8 +1,9 @@
 """Model checkpoints: safetensors weights + a JSON config that is enough to rebuild the model.
 
 Loading never unpickles anything: weights come from safetensors, the config from JSON. The skill
-model (`save_model` / `load_model`) and the single-step model (`save_dynamics` / `load_dynamics`)
-share the format and the code; each has its own format tag and the command that rebuilds it.
+model (`save_model` / `load_model`), the single-step model (`save_dynamics` / `load_dynamics`) and
+the behaviour-cloning policies (`save_policy` / `load_policy`) share the format and the code; each
+has its own format tag and the command that rebuilds it.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from torch import nn
 from pipeline.errors import UserError
 from pipeline.io import atomic_path
 from pipeline.model.dynamics import DynamicsConfig, DynamicsModel
+from pipeline.model.policy import GaussianPolicy, PolicyConfig
 from pipeline.model.skill_model import SkillModel, SkillModelConfig
 
 WEIGHTS_FILE = "model.safetensors"
@@ -27,6 +29,7 @@ CONFIG_FILE = "config.json"
 FORMAT_VERSION = 1
 SKILL_FORMAT = "oposm-skill-model"
 DYNAMICS_FORMAT = "oposm-dynamics-model"
+POLICY_FORMAT = "oposm-policy"
 
 
 def _write(module: nn.Module, directory: str | Path, weights_format: str, meta: dict) -> None:
@@ -151,3 +154,35 @@ def load_dynamics(
             f"{path} has no valid model config ({exc}); re-run `oposm dynamics`"
         ) from exc
     return _load_weights(DynamicsModel(config), directory, device, "oposm dynamics"), meta
+
+
+def save_policy(
+    policy: GaussianPolicy, directory: str | Path, kind: str, extra: dict[str, Any]
+) -> None:
+    """Write a BC policy (`kind`: the stage that made it, `bc` or `gcbc`): weights and
+    `config.json` (config + `extra`, e.g. dataset info)."""
+    meta = {"format": POLICY_FORMAT, "format_version": FORMAT_VERSION, "kind": kind}
+    _write(policy, directory, POLICY_FORMAT, meta | {"model": asdict(policy.config)} | extra)
+
+
+def load_policy(
+    directory: str | Path, kind: str, device: str | torch.device = "cpu"
+) -> tuple[GaussianPolicy, dict[str, Any]]:
+    """Rebuild the `kind` (`bc` | `gcbc`) policy in `directory` (eval mode) with its config.json.
+
+    Raises:
+        UserError: missing, corrupt or outdated files, or a policy of another kind (the message
+            names the command that makes the right one).
+    """
+    command = f"oposm {kind}"
+    meta = _read_meta(directory, f"{kind} policy", command)
+    path = Path(directory) / CONFIG_FILE
+    if meta.get("format") != POLICY_FORMAT or meta.get("format_version") != FORMAT_VERSION:
+        raise UserError(f"{path}: not a current policy; re-run `{command}`")
+    if meta.get("kind") != kind:
+        raise UserError(f"{path} holds a {meta.get('kind')} policy, not {kind}; run `{command}`")
+    try:
+        config = PolicyConfig(**meta["model"])
+    except (KeyError, TypeError) as exc:
+        raise UserError(f"{path} has no valid policy config ({exc}); re-run `{command}`") from exc
+    return _load_weights(GaussianPolicy(config), directory, device, command), meta

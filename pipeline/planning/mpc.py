@@ -31,6 +31,8 @@ class SkillMPC:
             None: the first G (`GoalCost`'s default).
     """
 
+    name = "oposm"
+
     def __init__(
         self,
         model: SkillModel,

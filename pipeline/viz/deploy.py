@@ -27,11 +27,14 @@ GOAL_COLOR = (230, 60, 60)
 AGENT_COLOR = (250, 200, 40)
 PATH_COLOR = (200, 40, 40)  # the executed path: fig. 10's red lines
 PLAN_COLOR = (40, 200, 80)  # predicted states of the plan: fig. 10's green dots
+LLP_PLAN_COLOR = (255, 80, 200)  # LLP's predicted low-level path: fig. 10's pink lines
 
 
 def recording_name(result: EpisodeResult) -> str:
-    """`<task>-<episode>`, the recording id and file stem."""
-    return f"{result.spec.task}-{result.spec.index:04d}"
+    """`<agent>-<task>-<episode>` (`<task>-<episode>` without an agent name), the recording id
+    and file stem."""
+    name = f"{result.spec.task}-{result.spec.index:04d}"
+    return f"{result.agent}-{name}" if result.agent else name
 
 
 def deploy_blueprint(layout: dict[str, Any]) -> rrb.Blueprint:
@@ -125,8 +128,10 @@ def _log_plans(rec: rr.RecordingStream, result: EpisodeResult, pos: list[int], d
         rec.set_time("step", sequence=t)
         rec.set_time("sim_time", duration=t * dt)
         xy = plan[:, pos]
-        rec.log("plan/states", rr.Points2D(xy[1:], radii=0.07, colors=PLAN_COLOR))
-        rec.log("plan/path", rr.LineStrips2D([xy], radii=0.015, colors=(*PLAN_COLOR, 140)))
+        # LLP predicts a state per action (dozens, close together), OPOSM one per skill.
+        color, radius = (LLP_PLAN_COLOR, 0.03) if result.agent == "llp" else (PLAN_COLOR, 0.07)
+        rec.log("plan/states", rr.Points2D(xy[1:], radii=radius, colors=color))
+        rec.log("plan/path", rr.LineStrips2D([xy], radii=0.015, colors=(*color, 140)))
         if np.isfinite(cost):
             rec.log("metrics/plan_cost", rr.Scalars(cost))
 
@@ -142,7 +147,8 @@ def _summary(result: EpisodeResult, pos: list[int], dt: float) -> str:
         outcome = f"did not reach the goal in {result.steps} steps"
         outcome += f" (closest {result.min_distance:.2f} m)"
     return (
-        f"task {spec.task}, episode {spec.index} (seed {spec.seed}): start "
+        (f"{result.agent}: " if result.agent else "")
+        + f"task {spec.task}, episode {spec.index} (seed {spec.seed}): start "
         f"{np.round(spec.start[pos], 2).tolist()}, goal {np.round(spec.goal, 2).tolist()}; "
         f"{outcome}; {result.replans} replans"
     )
