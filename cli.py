@@ -354,36 +354,59 @@ def view(
     recordings: Annotated[
         list[Path] | None,
         typer.Argument(
-            help="Recordings (.rrd) or folders of them; default data/recordings/deploy."
+            help="Recordings (.rrd), folders of them, or MCAP datasets (data/demos/*.mcap); "
+            "default: the newest run's recordings (data/ or data/runs/<run>/)."
         ),
     ] = None,
     web: Annotated[
         bool, typer.Option(help="Serve the web viewer instead of the native one.")
     ] = False,
     dry_run: Annotated[bool, typer.Option(help="Print the rerun command, do not run it.")] = False,
+    data: DataOption = None,
 ) -> None:
-    """Open deploy (or validate) recordings in the Rerun viewer.
+    """Open recordings, or a dataset, in the Rerun viewer.
 
-    Same as `rerun data/recordings/deploy/*.rrd`; each episode is one recording, listed in the
-    viewer's recording panel, laid out with the map beside the plots.
+    Without arguments: the newest run's deploy recordings (the run overview first: every
+    episode's start, goal and outcome on the maze; then one recording per episode) and its
+    validate recording (figure 4), and it says which run that is. An MCAP dataset opens as a
+    view of the demonstrations over the maze (written to a temporary .rrd). `--web` serves the
+    viewer bundled with rerun-sdk from this machine, so it works offline.
     """
     import subprocess
+    import tempfile
 
-    files: list[Path] = []
-    for path in recordings or [Path("data/recordings/deploy")]:
-        found = sorted(path.glob("*.rrd")) if path.is_dir() else [path] if path.exists() else []
-        if not found:
-            raise UserError(f"no recordings at {path}; run `oposm deploy` first")
-        files += found
-    command = [sys.executable, "-m", "rerun", *(["--web-viewer"] if web else []), *map(str, files)]
+    from pipeline.viz.runs import OVERVIEW, given, newest_run, show_first
+
+    selection = given(recordings) if recordings else newest_run(data or Path("data"))
     if not (web or dry_run) and _no_display():
         raise UserError(
             "no display for the native viewer (DISPLAY and WAYLAND_DISPLAY are unset); "
             "use `oposm view --web` and open the address it prints in a browser"
         )
-    typer.echo(" ".join(command))
-    if not dry_run:
-        raise typer.Exit(subprocess.run(command).returncode)
+    typer.echo(f"opening {selection.about}")
+    with tempfile.TemporaryDirectory(prefix="oposm-view-") as tmp:
+        files = [_dataset_view(f, Path(tmp)) if f.suffix == ".mcap" else f for f in selection.files]
+        web_args = ["--web-viewer"] if web else []
+        command = [sys.executable, "-m", "rerun", *web_args, *map(str, files)]
+        typer.echo(" ".join(command))
+        if dry_run:
+            return
+        with subprocess.Popen(command) as viewer:
+            if not web and any(f.name == OVERVIEW for f in files):
+                # The viewer shows whichever file loads first; put the run overview on screen.
+                show_first(Path(OVERVIEW).stem, len(files), failed=lambda: bool(viewer.poll()))
+            raise typer.Exit(viewer.wait())
+
+
+def _dataset_view(mcap: Path, folder: Path) -> Path:
+    """Write the Rerun view of an MCAP dataset into `folder`; say what it shows."""
+    from pipeline.viz.dataset import write_dataset_view
+
+    out = folder / f"{mcap.stem}.rrd"
+    shown = write_dataset_view(mcap, out)
+    if shown["episodes"] < shown["total"]:
+        typer.echo(f"{mcap}: showing the first {shown['episodes']} of {shown['total']} episodes")
+    return out
 
 
 def _no_display() -> bool:

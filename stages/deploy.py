@@ -44,6 +44,7 @@ from pipeline.planning.mpc import SkillMPC
 from pipeline.planning.skills import PlannerConfig, SkillPlanner
 from pipeline.segments import Segments, load_segments
 from pipeline.viz.deploy import recording_name, write_episode_recording
+from pipeline.viz.overview import write_overview
 from stages.report import write_report
 
 log = logging.getLogger(__name__)
@@ -237,6 +238,7 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
 
     by_agent: dict[str, Any] = {}
     rows: list[dict] = []
+    episodes: list[EpisodeResult] = []  # every agent's, for the run overview
     recordings = paths.recordings("deploy")
     recorded = 0
     with atomic_dir(recordings) as tmp:
@@ -262,6 +264,8 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
                 "settings": setup.about,
             }
             rows += [r.to_json() for task in cfg.tasks for r in results[task]]
+            episodes += [r for task in cfg.tasks for r in results[task]]
+        write_overview(tmp / "overview.rrd", episodes, spec)
 
     report: dict[str, Any] = {
         "dataset": name,

@@ -213,7 +213,8 @@ def test_deploy_writes_a_valid_report_and_prints_a_summary(project):
 def test_recordings_load_back_with_rerun(project):
     root, _, _ = project
     files = sorted((root / "data/recordings/deploy").glob("*.rrd"))
-    assert [f.stem for f in files] == [
+    assert (root / "data/recordings/deploy/overview.rrd") in files  # every agent's episodes
+    assert [f.stem for f in files if f.stem != "overview"] == [
         f"{agent}-{task}-{k:04d}"
         for agent in sorted(AGENTS) for task in ("corners", "random_goal") for k in (0, 1)
     ]  # fmt: skip
@@ -233,7 +234,8 @@ def test_recordings_load_back_with_rerun(project):
     assert {c.name for c in schema.index_columns()} >= {"step", "sim_time"}
     # One distance per state s_0..s_n, one plan per replan.
     chunks = list(store.stream())
-    distance_rows = sum(c.num_rows for c in chunks if c.entity_path == "/metrics/distance_to_goal")
+    temporal = [c for c in chunks if not c.is_static]  # static rows: the series' colour, name
+    distance_rows = sum(c.num_rows for c in temporal if c.entity_path.endswith("to_goal"))
     plan_rows = sum(c.num_rows for c in chunks if c.entity_path == "/plan/states")
     row = rows["oposmcorners0"]
     assert distance_rows == row["steps"] + 1 and plan_rows == row["replans"]
@@ -249,7 +251,7 @@ def test_recordings_load_back_with_rerun(project):
 def test_view_lists_the_recordings(project):
     root, _, _ = project
     result = runner.invoke(app, ["view", str(root / "data/recordings/deploy"), "--dry-run"])
-    assert result.exit_code == 0 and result.output.count(".rrd") == 16
+    assert result.exit_code == 0 and result.output.count(".rrd") == 16 + 1  # and the overview
     assert "-m rerun" in result.output
 
 
