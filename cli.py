@@ -7,6 +7,7 @@ only, and calls the matching `stages.<name>.run`. `dvc repro` runs the same comm
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import hashlib
 import importlib
@@ -65,6 +66,15 @@ RunOption = Annotated[
         help="Write under data/runs/<RUN>/ (inputs the run did not make come from data/). "
         "Runs with --set or another --params get a run folder named after them anyway, so "
         "the pipeline's tracked outputs only change by `dvc repro` or a plain stage command.",
+    ),
+]
+MetricsOption = Annotated[
+    Path | None,
+    typer.Option(
+        "--metrics",
+        help="Folder of the stage's headline metrics, <stage>.json (default: metrics/ beside "
+        "the data root, or the run folder's metrics/ for a --run).",
+        show_default=False,
     ),
 ]
 PIPELINE_PARAMS = Path("params.yaml")
@@ -251,9 +261,12 @@ def _stage_command(
         set_: SetOption = None,
         data: DataOption = None,
         run: RunOption = None,
+        metrics: MetricsOption = None,
     ) -> None:
         p = _load(params, set_)
         paths = _paths(params, set_, data, run)
+        if metrics is not None:
+            paths = dataclasses.replace(paths, metrics_root=metrics)
         if announce:
             log.info(announce)
         result = importlib.import_module(f"stages.{name}").run(p, paths)

@@ -343,6 +343,12 @@ class DeployParams(_Section):
     success_radius: float = Field(0.5, gt=0, description="Success distance (paper, D4RL: 0.5).")
     start_noise: float = Field(0.1, ge=0, description="Uniform +- noise on start positions (m).")
     record_episodes: int = Field(10, ge=0, description="Episodes per task with a recording.")
+    mass_scale: float = Field(
+        1.0,
+        gt=0,
+        description="Every body's mass and inertia in the simulator times this (the "
+        "robustness experiment, paper fig. 5); the models stay as trained.",
+    )
     planner: PlannerParams = Field(default_factory=PlannerParams)
     llp: LLPParams = Field(default_factory=LLPParams)
     gcbc: GCBCAgentParams = Field(default_factory=GCBCAgentParams)

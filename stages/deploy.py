@@ -26,6 +26,7 @@ from pipeline.config import DeployParams, LLPParams, Params, PlannerParams
 from pipeline.devices import resolve_device, torch_threads
 from pipeline.envs.batch import BatchSim
 from pipeline.envs.expert import ExpertConfig
+from pipeline.envs.perturb import scale_mass
 from pipeline.envs.spec import EnvSpec, make_env_spec
 from pipeline.errors import UserError
 from pipeline.evaluation.compat import check_model_dims, check_same_environment
@@ -228,7 +229,8 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
     setups = {a: build_agent(a, params, paths, segments, spec, device) for a in cfg.agents}
 
     started = time.perf_counter()
-    envs = BatchSim(spec, min(cfg.num_envs, cfg.episodes))
+    n_envs = min(cfg.num_envs, cfg.episodes)
+    envs = BatchSim(spec, n_envs, [scale_mass(spec.model, cfg.mass_scale)] * n_envs)
     goal = None if cfg.goal is None else np.asarray(cfg.goal, dtype=np.float64)
     locations = train_locations(segments, spec.goal_dims)
     tasks = MazeTasks(spec.layout, locations, cfg.start_noise, goal, cfg.seed)
@@ -277,6 +279,7 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
         "episodes": len(rows),
         "episodes_per_task": cfg.episodes,
         "success_radius": cfg.success_radius,
+        "mass_scale": cfg.mass_scale,
         "max_steps": max_steps,
         "shorter_limits": limits,
         "by_agent": by_agent,

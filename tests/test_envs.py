@@ -263,3 +263,27 @@ def test_batch_sim_runs_a_model_variant_per_slot() -> None:
     assert x[0] == x[2] and 0 < x[1] < 0.6 * x[0]
     with pytest.raises(ValueError, match="one model per slot"):
         BatchSim(spec, 2, models=[heavy])
+
+
+def test_scale_mass_scales_every_body_and_leaves_the_nominal_model_alone():
+    """`deploy.mass_scale` (paper fig. 5): mass and inertia x factor, the point moves as slowly
+    as the factor says, the spec's model is untouched, and a non-positive factor is refused."""
+    from pipeline.envs.batch import BatchSim
+    from pipeline.envs.perturb import scale_mass
+    from pipeline.envs.spec import PointMazeSpec
+    from pipeline.errors import UserError
+
+    spec = PointMazeSpec.create("PointMaze_UMaze-v3")
+    nominal_mass = spec.model.body_mass.copy()
+    light, heavy = scale_mass(spec.model, 0.5), scale_mass(spec.model, 4.0)
+    assert np.array_equal(spec.model.body_mass, nominal_mass)
+    assert np.allclose(heavy.body_mass[1:], 4 * nominal_mass[1:]) and heavy.body_mass[0] == 0
+    assert np.allclose(heavy.body_inertia[1:], 4 * spec.model.body_inertia[1:])
+    sim = BatchSim(spec, 3, models=[spec.model, light, heavy])
+    sim.reset(np.zeros((3, 4)))
+    for _ in range(3):
+        sim.step(np.tile([0.2, 0.0], (3, 1)))
+    x = sim.observe()[:, 0]
+    assert x[1] > 1.8 * x[0] > 0 and 0 < x[2] < 0.3 * x[0]
+    with pytest.raises(UserError, match="deploy.mass_scale"):
+        scale_mass(spec.model, 0.0)
