@@ -363,6 +363,35 @@ _stage_command(
 
 @app.command()
 @_user_errors
+def results(
+    experiments: Annotated[
+        Path, typer.Option(help="The experiments' params (which mazes, mass factors).")
+    ] = Path("experiments/params.yaml"),
+    data: Annotated[Path, typer.Option(help="Where experiments/dvc.yaml wrote its runs.")] = Path(
+        "data/experiments"
+    ),
+    out: Annotated[Path, typer.Option(help="Folder of the report.")] = Path("results"),
+) -> None:
+    """Write the paper's experiments beside the paper's numbers: results/experiments.md.
+
+    The last stage of `dvc repro experiments/dvc.yaml`: reads the deploy reports of the maze-size
+    and mass runs, gives each claim of the paper a verdict (holds / does not hold /
+    inconclusive, from 95 % intervals), and writes results/experiments.md, experiments.json and
+    the plots' CSVs (`dvc plots show experiments/dvc.yaml`).
+    """
+    from stages.results import run
+
+    _setup_logging()
+    found = run(experiments, data, out)
+    for claim in found["claims"]:
+        typer.echo(f"{claim['verdict']:>13s}  {claim['claim']}: {claim['numbers']}")
+    if found["not_run"]:
+        typer.echo(f"not run: {'; '.join(found['not_run'])}")
+    typer.echo(f"report: {out / 'experiments.md'}")
+
+
+@app.command()
+@_user_errors
 def view(
     recordings: Annotated[
         list[Path] | None,

@@ -342,7 +342,8 @@ def test_metrics_option_puts_the_headline_numbers_where_asked(tmp_path, monkeypa
     """experiments/dvc.yaml gives each variant's data root its own metrics folder."""
     monkeypatch.chdir(tmp_path)
     (tmp_path / "params.yaml").write_text(yaml.safe_dump(TINY))
-    args = ["ingest", "--data", "variant", "--metrics", "variant/metrics", "-S", "ingest.episodes=4"]
+    args = ["ingest", "--data", "variant", "--metrics", "variant/metrics"]
+    args += ["-S", "ingest.episodes=4"]
     assert runner.invoke(app, args).exit_code == 0
     assert json.loads((tmp_path / "variant/metrics/ingest.json").read_text())["episodes"] == 4
     assert (tmp_path / "variant/demos/tiny.mcap").exists() and not (tmp_path / "metrics").exists()

@@ -19,8 +19,9 @@ from pipeline.envs.maze import layout_cell, make_maze_env
 from pipeline.envs.spec import PointMazeSpec
 from pipeline.errors import UserError
 from pipeline.evaluation.episodes import EpisodeResult, RunConfig, run_episodes
+from pipeline.evaluation.proportions import wilson_interval
 from pipeline.evaluation.report import format_summary
-from pipeline.evaluation.stats import latency_summary, task_summary, wilson_interval
+from pipeline.evaluation.stats import latency_summary, task_summary
 from pipeline.evaluation.tasks import EpisodeSpec, MazeTasks, check_goal
 from pipeline.model import SkillModel, SkillModelConfig, load_model, save_model
 from pipeline.planning import CEMConfig, PlannerConfig, SkillPlanner

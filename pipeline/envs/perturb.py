@@ -1,4 +1,4 @@
-"""Dynamics perturbations of an environment's MuJoCo model (the robustness experiment, paper fig. 5).
+"""Dynamics perturbations of an environment's MuJoCo model (robustness experiment, paper fig. 5).
 
 The paper deploys its agents in an antmaze whose geoms' density it scales (×0.2 … ×5 of the
 default) with every model left as trained. `scale_mass` does the same to any `EnvSpec`'s model:

@@ -23,7 +23,7 @@ from pipeline.envs.ant import (
     oracle_direction,
 )
 from pipeline.envs.ant_expert import DirectionActor
-from pipeline.evaluation.stats import wilson_interval
+from pipeline.evaluation.proportions import wilson_interval
 from pipeline.expert_config import ExpertCheckParams
 
 

@@ -1,31 +1,14 @@
-"""Success rates with Wilson score intervals, steps-to-goal and planning latency summaries."""
+"""Success rates with Wilson score intervals (`proportions`), steps-to-goal and planning latency
+summaries of deploy episodes."""
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
-from statistics import NormalDist
 
 import numpy as np
 
 from pipeline.evaluation.episodes import EpisodeResult, PlanCall
-
-
-def wilson_interval(successes: int, n: int, confidence: float = 0.95) -> tuple[float, float]:
-    """Wilson score interval for a binomial proportion (Wilson, 1927).
-
-    Unlike the normal approximation it stays inside [0, 1] and is sensible at 0 or n successes
-    (e.g. 100 / 100 -> [0.963, 1.0]). Written out because it is six lines and scipy / statsmodels
-    are not dependencies.
-    """
-    if n == 0:
-        return 0.0, 1.0
-    z = NormalDist().inv_cdf(0.5 + confidence / 2)
-    p = successes / n
-    denom = 1 + z * z / n
-    centre = (p + z * z / (2 * n)) / denom
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
-    return max(0.0, centre - half), min(1.0, centre + half)
+from pipeline.evaluation.proportions import wilson_interval
 
 
 def _quantiles(values: list[float] | np.ndarray) -> dict[str, float | None]:

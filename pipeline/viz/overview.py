@@ -22,7 +22,7 @@ import rerun.blueprint as rrb
 
 from pipeline.envs.spec import EnvSpec
 from pipeline.evaluation.episodes import EpisodeResult
-from pipeline.evaluation.stats import wilson_interval
+from pipeline.evaluation.proportions import wilson_interval
 from pipeline.io import atomic_path
 from pipeline.viz.maze import (
     FAILURE,

@@ -1,0 +1,135 @@
+"""`oposm results`: the experiments' deploy reports -> results/ with a verdict per claim."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from cli import app
+from pipeline.evaluation.proportions import difference_interval, wilson_interval
+from stages.results import collect, markdown, run
+
+ROOT = Path(__file__).resolve().parents[1]
+runner = CliRunner()
+
+
+def _task(wins: int, n: int = 200, within: int | None = None) -> dict:
+    within = wins if within is None else within
+    return {"successes": wins, "episodes": n, "within_steps": {"600": {"successes": within}}}
+
+
+def _agent(random_goal: int, corners: int, replan_s: float | None) -> dict:
+    return {
+        "random_goal": _task(random_goal, within=random_goal - 2),
+        "corners": _task(corners),
+        "planning": {"per_env_latency_s": {"p50": replan_s}},
+        "flops_per_replan": None if replan_s is None else 1e9,
+    }
+
+
+def _report(agents: dict[str, dict]) -> dict:
+    return {
+        "env_id": "PointMaze_Medium-v3",
+        "tasks": ["random_goal", "corners"],
+        "max_steps": 2000,
+        "shorter_limits": [600],
+        "episodes_per_task": 200,
+        "wall_s": 12.0,
+        "by_agent": agents,
+    }
+
+
+def _write(path: Path, report: dict) -> None:
+    path.mkdir(parents=True)
+    (path / "report.json").write_text(json.dumps(report))
+
+
+@pytest.fixture
+def experiments(tmp_path):
+    params = {
+        "mazes": {"medium": {"env_id": "PointMaze_Medium-v3"}, "large": {"env_id": "L"}},
+        "mass": {"maze": "medium", "factors": {"x0.5": 0.5, "x1": 1.0, "x2": 2.0}},
+    }
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
+    data = tmp_path / "data"
+    medium = {
+        "oposm": _agent(199, 190, 0.10),
+        "llp": _agent(180, 195, 0.05),
+        "gcbc": _agent(150, 90, None),
+        "expert": _agent(200, 200, None),
+    }
+    _write(data / "mazes/medium/reports/deploy", _report(medium))
+    for key, (oposm, expert) in {"x0.5": (90, 60), "x1": (98, 99), "x2": (85, 40)}.items():
+        agents = {"oposm": _agent(oposm, oposm, 0.1), "expert": _agent(expert, expert, None)}
+        _write(data / f"mazes/medium/runs/mass-{key}/reports/deploy", _report(agents))
+    return tmp_path / "params.yaml", data
+
+
+def test_intervals_of_a_rate_and_of_a_difference():
+    lo, hi = wilson_interval(200, 200)
+    assert hi == 1.0 and 0.98 < lo < 0.985
+    lo, hi = difference_interval(199, 200, 180, 200)
+    assert 0.04 < lo < 0.095 < hi < 0.15  # excludes 0: OPOSM ahead
+    lo, hi = difference_interval(190, 200, 192, 200)
+    assert lo < 0 < hi
+
+
+def test_verdicts_follow_the_intervals_and_missing_runs_are_named(experiments):
+    params, data = experiments
+    results = collect(params, data)
+    verdicts = {c["claim"]: c["verdict"] for c in results["claims"]}
+    assert verdicts["OPOSM reaches random goals in maze2d-medium (table 4: 100.0 %)"] == "holds"
+    assert verdicts["OPOSM reaches random goals more often than LLP (table 4: 95.7 %), medium"] == (
+        "holds"
+    )
+    timing = next(c for c in results["claims"] if c["claim"].startswith("OPOSM finds a plan"))
+    assert timing["verdict"] == "does not hold" and "LLP/OPOSM 0.50x" in timing["numbers"]
+    mass = next(c for c in results["claims"] if "than expert" in c["claim"])
+    assert mass["verdict"] == "holds"  # 175/400 vs 100/400 off the nominal mass
+    assert results["mass"]["perturbed_pooled"]["oposm"]["successes"] == 2 * (90 + 85)
+    assert "maze sizes: large" in results["not_run"]
+    assert "EM vs naive VI (table 3)" in results["not_run"]
+    medium = results["mazes"]["medium"]["agents"]["oposm"]["random_goal"]
+    assert medium["within_600"]["successes"] == 197
+
+
+def test_run_writes_the_report_json_and_plot_csvs(experiments, tmp_path):
+    params, data = experiments
+    out = tmp_path / "results"
+    run(params, data, out)
+    text = (out / "experiments.md").read_text()
+    assert (
+        "| medium | random_goal | llp | 90.0 [85.1, 93.4] | 89.0 [83.9, 92.6] (600) | 95.7" in text
+    )
+    assert "| oposm (ours) | 45.0" in text and "| expert (paper, antmaze-large) | 49.3" in text
+    assert (
+        json.loads((out / "experiments.json").read_text())["mazes"]["medium"]["max_steps"] == 2000
+    )
+    mass_csv = (out / "mass.csv").read_text().splitlines()
+    assert mass_csv[0] == "mass_factor,oposm,expert" and mass_csv[1].startswith("0.5,0.45,0.3")
+    assert (out / "mazes.csv").read_text().splitlines()[1].startswith("medium,0.995,0.9")
+    assert markdown(collect(params, data)) == text
+
+
+def test_cli_prints_verdicts_and_refuses_a_broken_report(experiments, tmp_path):
+    params, data = experiments
+    args = ["results", "--experiments", str(params), "--data", str(data)]
+    result = runner.invoke(app, [*args, "--out", str(tmp_path / "r")])
+    assert result.exit_code == 0, result.output
+    assert "holds  OPOSM reaches random goals in maze2d-medium" in result.output
+    (data / "mazes/medium/reports/deploy/report.json").write_text("{")
+    result = runner.invoke(app, [*args, "--out", str(tmp_path / "r2")])
+    assert result.exit_code != 0 and "report.json: not valid JSON" in result.output
+    assert "Traceback" not in result.output and not (tmp_path / "r2/experiments.md").exists()
+
+
+def test_dvc_reads_the_experiments_pipeline():
+    command = [sys.executable, "-m", "dvc", "stage", "list", "experiments/dvc.yaml"]
+    out = subprocess.run(command, cwd=ROOT, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    names = {line.split()[0].split(":")[1] for line in out.stdout.splitlines() if line.strip()}
+    assert {"train@large", "deploy@umaze", "mass@x0.2", "mass@x5", "results"} <= names
