@@ -367,9 +367,9 @@ def results(
     experiments: Annotated[
         Path, typer.Option(help="The experiments' params (which mazes, mass factors).")
     ] = Path("experiments/params.yaml"),
-    data: Annotated[Path, typer.Option(help="Where experiments/dvc.yaml wrote its runs.")] = Path(
-        "data/experiments"
-    ),
+    repo: Annotated[
+        Path, typer.Option(help="The folder the experiments' data roots are relative to.")
+    ] = Path("."),
     out: Annotated[Path, typer.Option(help="Folder of the report.")] = Path("results"),
 ) -> None:
     """Write the paper's experiments beside the paper's numbers: results/experiments.md.
@@ -382,7 +382,7 @@ def results(
     from stages.results import run
 
     _setup_logging()
-    found = run(experiments, data, out)
+    found = run(experiments, repo, out)
     for claim in found["claims"]:
         typer.echo(f"{claim['verdict']:>13s}  {claim['claim']}: {claim['numbers']}")
     if found["not_run"]:

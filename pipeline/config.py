@@ -73,6 +73,16 @@ class MinariSourceParams(_Section):
     )
 
 
+class DisturbanceParams(_Section):
+    """Random external pushes on the agent: uncontrolled stochasticity (`pipeline.envs.
+    disturbance`); recorded with the data, and validate and deploy run the same process."""
+
+    probability: float = Field(0.0, ge=0, le=1, description="Chance of a push per control step.")
+    impulse: float = Field(
+        0.0, ge=0, description="N s per push, random direction (4.2 = 1 m/s for the 4.19 kg point)."
+    )
+
+
 class IngestParams(_Section):
     """`oposm ingest`: demonstrations into `data/demos/<name>.mcap`."""
 
@@ -93,6 +103,9 @@ class IngestParams(_Section):
     seed: int = Field(0, description="Seed of the expert, the noise and the start state.")
     expert: ExpertConfig = Field(
         default_factory=ExpertConfig, description="The scripted waypoint expert (D4RL maze2d)."
+    )
+    disturbance: DisturbanceParams = Field(
+        default_factory=DisturbanceParams, description="Random pushes (source: maze only)."
     )
     lerobot: LeRobotSourceParams = Field(default_factory=LeRobotSourceParams)
     d4rl: D4RLSourceParams = Field(default_factory=D4RLSourceParams)

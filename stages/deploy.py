@@ -25,6 +25,7 @@ from tqdm import tqdm
 from pipeline.config import DeployParams, LLPParams, Params, PlannerParams
 from pipeline.devices import resolve_device, torch_threads
 from pipeline.envs.batch import BatchSim
+from pipeline.envs.disturbance import Pushes
 from pipeline.envs.expert import ExpertConfig
 from pipeline.envs.perturb import scale_mass
 from pipeline.envs.spec import EnvSpec, make_env_spec
@@ -230,7 +231,8 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
 
     started = time.perf_counter()
     n_envs = min(cfg.num_envs, cfg.episodes)
-    envs = BatchSim(spec, n_envs, [scale_mass(spec.model, cfg.mass_scale)] * n_envs)
+    pushes = Pushes.of_dataset(segments.info.generator)  # the data's, if it was pushed
+    envs = BatchSim(spec, n_envs, [scale_mass(spec.model, cfg.mass_scale)] * n_envs, pushes)
     goal = None if cfg.goal is None else np.asarray(cfg.goal, dtype=np.float64)
     locations = train_locations(segments, spec.goal_dims)
     tasks = MazeTasks(spec.layout, locations, cfg.start_noise, goal, cfg.seed)
@@ -280,6 +282,7 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
         "episodes_per_task": cfg.episodes,
         "success_radius": cfg.success_radius,
         "mass_scale": cfg.mass_scale,
+        "disturbance": pushes.to_dict(),
         "max_steps": max_steps,
         "shorter_limits": limits,
         "by_agent": by_agent,

@@ -11,8 +11,10 @@ from pathlib import Path
 from pipeline.config import Params
 from pipeline.dataset import DatasetInfo, Episode
 from pipeline.envs.checks import DatasetReport, check_maze_dataset, raise_for_problems
+from pipeline.envs.disturbance import Pushes
 from pipeline.envs.generate import dataset_info, generate_episodes
 from pipeline.envs.spec import check_physics_dim
+from pipeline.errors import UserError
 from pipeline.io import atomic_path
 from pipeline.paths import Paths
 from pipeline.recording import iter_episodes, write_dataset
@@ -24,14 +26,32 @@ log = logging.getLogger(__name__)
 def _source(params: Params, progress: bool) -> tuple[DatasetInfo, Iterator[Episode]]:
     """The dataset's metadata and episode stream: generated (maze) or imported."""
     cfg = params.ingest
+    pushes = Pushes(**cfg.disturbance.model_dump())
     if cfg.source == "maze":
         info = dataset_info(
-            cfg.env_id, cfg.name, cfg.seed, cfg.expert, cfg.episodes, cfg.episode_steps
+            cfg.env_id,
+            cfg.name,
+            cfg.seed,
+            cfg.expert,
+            cfg.episodes,
+            cfg.episode_steps,
+            disturbance=pushes,
         )
         episodes = generate_episodes(
-            cfg.env_id, cfg.episodes, cfg.episode_steps, cfg.seed, cfg.expert, progress=progress
+            cfg.env_id,
+            cfg.episodes,
+            cfg.episode_steps,
+            cfg.seed,
+            cfg.expert,
+            progress=progress,
+            disturbance=pushes,
         )
         return info, episodes
+    if pushes.active:
+        raise UserError(
+            f"ingest.disturbance: pushes only apply to data we simulate (source: maze), not to "
+            f"an import (source: {cfg.source}); set ingest.disturbance.probability=0"
+        )
     from pipeline.sources import open_source
 
     imported = open_source(cfg, progress=progress)

@@ -1,10 +1,11 @@
 """Results stage (`oposm results`, the last stage of experiments/dvc.yaml): the paper's experiments
 beside the paper's numbers, one verdict per claim.
 
-Reads the deploy reports the experiments pipeline wrote under `data/experiments/` (which ones:
-`experiments/params.yaml`) and writes `results/experiments.md` (the report), `results/
-experiments.json` (the same numbers, and the metrics DVC shows) and the CSVs behind `dvc plots
-show experiments/dvc.yaml`. An experiment whose reports are missing is reported as not run.
+Reads the deploy reports the experiments pipeline wrote (`<root>/runs/experiments/` per maze,
+`<root>/runs/mass-<factor>/` per mass factor; the roots are in `experiments/params.yaml`) and
+writes `results/experiments.md` (the report), `results/experiments.json` (the same numbers, and
+the metrics DVC shows) and the CSVs behind `dvc plots show experiments/dvc.yaml`. An experiment
+whose reports are missing is reported as not run.
 
 Verdicts compare success rates with 95 % intervals: a difference between two agents holds when its
 Newcombe interval excludes 0 in the claimed direction, does not hold when it excludes 0 the other
@@ -167,16 +168,16 @@ def _mass_claims(mass: dict[str, Any]) -> list[dict[str, Any]]:
     return claims
 
 
-def collect(experiments: Path, data: Path) -> dict[str, Any]:
-    """The numbers and verdicts of every experiment whose reports exist."""
+def collect(experiments: Path, repo: Path) -> dict[str, Any]:
+    """The numbers and verdicts of every experiment whose reports exist (`deploy.roots` and
+    `mass.root` of `experiments` are relative to `repo`)."""
     try:
         exp = yaml.safe_load(experiments.read_text())
     except FileNotFoundError as exc:
         raise UserError(f"{experiments}: not found; run from the repository root") from exc
-    mazes_root = data / "mazes"
     results: dict[str, Any] = {"mazes": {}, "claims": [], "not_run": []}
-    for maze in exp["mazes"]:
-        report = _read(mazes_root / maze / "reports/deploy/report.json")
+    for maze, root in exp["deploy"]["roots"].items():
+        report = _read(repo / root / "runs/experiments/reports/deploy/report.json")
         if report is None:
             results["not_run"].append(f"maze sizes: {maze}")
             continue
@@ -191,7 +192,7 @@ def collect(experiments: Path, data: Path) -> dict[str, Any]:
         }
         results["claims"] += _maze_claims(maze, numbers)
     mass_cfg = exp["mass"]
-    runs = mazes_root / mass_cfg["maze"] / "runs"
+    runs = repo / mass_cfg["root"] / "runs"
     reports = {k: _read(runs / f"mass-{k}/reports/deploy/report.json") for k in mass_cfg["factors"]}
     results["not_run"] += [f"mass: {k}" for k, r in reports.items() if r is None]
     results["mass"] = {"maze": mass_cfg["maze"], **_mass(reports, mass_cfg["factors"])}
@@ -248,7 +249,7 @@ def markdown(results: dict[str, Any]) -> str:
         "# The paper's experiments: our numbers beside the paper's",
         "",
         "Made by `uv run dvc repro experiments/dvc.yaml` (its `results` stage, `oposm results`) "
-        "from the deploy reports under `data/experiments/`; assembled on "
+        "from the deploy reports of its runs; assembled on "
         f"{results['assembled_on']}. "
         "Success rates in %, with 95 % Wilson intervals in brackets; differences with Newcombe "
         "intervals. Verdicts: a claim holds when the interval excludes the opposite.",
@@ -320,9 +321,9 @@ def _write_text(path: Path, text: str) -> None:
         tmp.write_text(text)
 
 
-def run(experiments: Path, data: Path, out: Path) -> dict[str, Any]:
+def run(experiments: Path, repo: Path, out: Path) -> dict[str, Any]:
     """Collect, judge and write `out/` (experiments.md, experiments.json, the plots' CSVs)."""
-    results = collect(experiments, data)
+    results = collect(experiments, repo)
     out.mkdir(parents=True, exist_ok=True)
     _write_text(out / "experiments.md", markdown(results))
     write_json(out / "experiments.json", results)

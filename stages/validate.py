@@ -15,6 +15,7 @@ from typing import Any
 
 from pipeline.config import Params
 from pipeline.devices import resolve_device, torch_threads
+from pipeline.envs.disturbance import Pushes
 from pipeline.envs.spec import make_env_spec
 from pipeline.evaluation.compat import check_same_environment
 from pipeline.evaluation.open_loop import run_open_loop
@@ -68,6 +69,7 @@ def run(params: Params, paths: Paths) -> dict[str, Any]:
         from pipeline.viz.validate import write_recording
 
         write_recording(recording_path(paths), result, spec, cfg.record_starts)
+    report["disturbance"] = Pushes.of_dataset(info.generator).to_dict()  # as simulated
     report["timing"]["total_s"] = time.monotonic() - started
     write_report(paths, "validate", report)
     _log(report)

@@ -51,8 +51,8 @@ def _write(path: Path, report: dict) -> None:
 @pytest.fixture
 def experiments(tmp_path):
     params = {
-        "mazes": {"medium": {"env_id": "PointMaze_Medium-v3"}, "large": {"env_id": "L"}},
-        "mass": {"maze": "medium", "factors": {"x0.5": 0.5, "x1": 1.0, "x2": 2.0}},
+        "deploy": {"roots": {"medium": "data", "large": "data/experiments/mazes/large"}},
+        "mass": {"maze": "medium", "root": "data", "factors": {"x0.5": 0.5, "x1": 1.0, "x2": 2.0}},
     }
     (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
     data = tmp_path / "data"
@@ -62,11 +62,11 @@ def experiments(tmp_path):
         "gcbc": _agent(150, 90, None),
         "expert": _agent(200, 200, None),
     }
-    _write(data / "mazes/medium/reports/deploy", _report(medium))
+    _write(data / "runs/experiments/reports/deploy", _report(medium))
     for key, (oposm, expert) in {"x0.5": (90, 60), "x1": (98, 99), "x2": (85, 40)}.items():
         agents = {"oposm": _agent(oposm, oposm, 0.1), "expert": _agent(expert, expert, None)}
-        _write(data / f"mazes/medium/runs/mass-{key}/reports/deploy", _report(agents))
-    return tmp_path / "params.yaml", data
+        _write(data / f"runs/mass-{key}/reports/deploy", _report(agents))
+    return tmp_path / "params.yaml", tmp_path
 
 
 def test_intervals_of_a_rate_and_of_a_difference():
@@ -117,11 +117,11 @@ def test_run_writes_the_report_json_and_plot_csvs(experiments, tmp_path):
 
 def test_cli_prints_verdicts_and_refuses_a_broken_report(experiments, tmp_path):
     params, data = experiments
-    args = ["results", "--experiments", str(params), "--data", str(data)]
+    args = ["results", "--experiments", str(params), "--repo", str(data)]
     result = runner.invoke(app, [*args, "--out", str(tmp_path / "r")])
     assert result.exit_code == 0, result.output
     assert "holds  OPOSM reaches random goals in maze2d-medium" in result.output
-    (data / "mazes/medium/reports/deploy/report.json").write_text("{")
+    (data / "data/runs/experiments/reports/deploy/report.json").write_text("{")
     result = runner.invoke(app, [*args, "--out", str(tmp_path / "r2")])
     assert result.exit_code != 0 and "report.json: not valid JSON" in result.output
     assert "Traceback" not in result.output and not (tmp_path / "r2/experiments.md").exists()

@@ -17,6 +17,7 @@ from collections.abc import Sequence
 import mujoco
 import numpy as np
 
+from pipeline.envs.disturbance import Pushes, draw_force, push_rng, pushed_step
 from pipeline.envs.maze import PHYSICS_SPEC
 from pipeline.envs.spec import EnvSpec
 
@@ -41,10 +42,20 @@ class BatchSim:
             spec's nominal model in every slot if None. A variant made by editing a copy's
             fields (e.g. `body_mass`) needs `mujoco.mj_setConst` afterwards: MuJoCo caches
             derived constants such as a constant mass matrix.
+        pushes: Random external pushes in every slot (`pipeline.envs.disturbance`), each slot
+            drawing from the generator `seed_pushes` gave it; None: none.
     """
 
-    def __init__(self, spec: EnvSpec, n: int, models: Sequence[mujoco.MjModel] | None = None):
+    def __init__(
+        self,
+        spec: EnvSpec,
+        n: int,
+        models: Sequence[mujoco.MjModel] | None = None,
+        pushes: Pushes | None = None,
+    ):
         self.spec = spec
+        self.pushes = pushes if pushes is not None and pushes.active else None
+        self._push_rngs: list[np.random.Generator | None] = [None] * n
         self.models = [spec.model] * n if models is None else list(models)
         if len(self.models) != n:
             raise ValueError(f"need one model per slot: {len(self.models)} != {n}")
@@ -68,6 +79,12 @@ class BatchSim:
             mujoco.mj_resetData(model, data)
             self.spec.set_observation(data, obs)
             mujoco.mj_forward(model, data)
+
+    def seed_pushes(self, seeds: Sequence[int], rows: Rows = None) -> None:
+        """Give slots `rows` the push generators of episodes with these seeds (a slot's pushes
+        then depend on its episode only, not on the batch)."""
+        for i, seed in zip(self._rows(rows), seeds, strict=True):
+            self._push_rngs[i] = push_rng(seed)
 
     def set_state(self, physics: np.ndarray, rows: Rows = None) -> None:
         """Put slots `rows [A]` in exact full-physics states `[A, physics_dim]`
@@ -120,8 +137,11 @@ class BatchSim:
                 failed[i] = f"non-finite action {action.tolist()}"
                 continue
             data = self.datas[i]
+            force = None
+            if self.pushes is not None:
+                force = draw_force(self.pushes, self._slot_rng(i), self.spec.dt)
             try:
-                self.spec.control_step(self.models[i], data, action)
+                pushed_step(self.spec.control_step, self.models[i], data, action, force)
             except Exception as exc:  # one slot's failure must not stop the others
                 failed[i] = f"{type(exc).__name__}: {exc}".splitlines()[0]
                 continue
@@ -130,3 +150,9 @@ class BatchSim:
                     failed[i] = f"MuJoCo instability ({w.name}) at t = {data.time:.2f} s"
                     break
         return failed
+
+    def _slot_rng(self, i: int) -> np.random.Generator:
+        rng = self._push_rngs[i]
+        if rng is None:
+            raise RuntimeError(f"slot {i} has pushes but no generator: call seed_pushes first")
+        return rng

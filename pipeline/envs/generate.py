@@ -16,6 +16,7 @@ import numpy as np
 from tqdm import tqdm
 
 from pipeline.dataset import DatasetInfo, Episode
+from pipeline.envs.disturbance import Pushes, draw_force, push_rng, pushed_step
 from pipeline.envs.expert import ExpertConfig, WaypointExpert
 from pipeline.envs.maze import (
     PHYSICS_SPEC,
@@ -58,6 +59,7 @@ def generate_episodes(
     expert: ExpertConfig,
     progress: bool = True,
     maze_map: list[list[int | str]] | None = None,
+    disturbance: Pushes | None = None,
 ) -> Iterator[Episode]:
     """Run the expert in one continuous simulation and yield it as consecutive episodes.
 
@@ -72,6 +74,8 @@ def generate_episodes(
         expert: Expert gains and noise.
         progress: Show a tqdm bar over the total number of steps.
         maze_map: Custom map instead of the env's own (e.g. a tiny maze in tests).
+        disturbance: Random pushes on the ball (`pipeline.envs.disturbance`), drawn from their
+            own generator (seeded from `seed`); None: none, and the data is as without them.
 
     Returns:
         An iterator over `Episode`s with observations `[N, 4]` (x, y, vx, vy before the step),
@@ -82,7 +86,8 @@ def generate_episodes(
     """
     _check_sizes(n_episodes, episode_steps, seed)
     env = make_maze_env(env_id, maze_map)  # validates here, not at the first next()
-    return _generate(env, env_id, n_episodes, episode_steps, int(seed), expert, progress)
+    pushes = disturbance or Pushes()
+    return _generate(env, env_id, n_episodes, episode_steps, int(seed), expert, progress, pushes)
 
 
 def _generate(
@@ -93,6 +98,7 @@ def _generate(
     seed: int,
     expert: ExpertConfig,
     progress: bool,
+    pushes: Pushes,
 ) -> Iterator[Episode]:
     """The body of `generate_episodes`, run lazily; closes `env` when done."""
     try:
@@ -105,12 +111,13 @@ def _generate(
             raise RuntimeError(f"unexpected point mass model: nq={nq} nv={nv} state={physics_dim}")
         dt = float(pe.dt)
         bot = WaypointExpert(maze_layout(env), expert, np.random.default_rng(seed))
+        push = _Push(pushes, push_rng(seed), dt)
         bot.new_goal(*data.qpos.tolist())
         _show_goal(env, bot)
         total = n_episodes * episode_steps
         with tqdm(total=total, disable=not progress, unit="step", desc=env_id) as bar:
             for k in range(n_episodes):
-                physics, actions, goals, reached = _run(model, data, bot, episode_steps, bar)
+                physics, actions, goals, reached = _run(model, data, bot, episode_steps, bar, push)
                 _show_goal(env, bot)
                 yield Episode(
                     index=k,
@@ -125,8 +132,23 @@ def _generate(
         env.close()
 
 
+class _Push:
+    """The data stream's pushes: `force()` for each step in turn."""
+
+    def __init__(self, pushes: Pushes, rng: np.random.Generator, dt: float):
+        self.pushes, self.rng, self.dt = pushes, rng, dt
+
+    def force(self) -> tuple[float, float] | None:
+        return draw_force(self.pushes, self.rng, self.dt)
+
+
 def _run(
-    model: mujoco.MjModel, data: mujoco.MjData, bot: WaypointExpert, n: int, bar: tqdm
+    model: mujoco.MjModel,
+    data: mujoco.MjData,
+    bot: WaypointExpert,
+    n: int,
+    bar: tqdm,
+    push: _Push,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Simulate `n` expert steps from the current state; the hot loop of data generation.
 
@@ -145,7 +167,10 @@ def _run(
         goals[t] = bot.goal_x, bot.goal_y
         action = bot.act(x, y, vx, vy)
         actions[t] = action
-        step_point_mass(model, data, action)
+        if push.pushes.active:
+            pushed_step(step_point_mass, model, data, action, push.force())
+        else:
+            step_point_mass(model, data, action)
         x, y = qpos.tolist()
         reached[t] = bot.update(x, y)
         if (t + 1) % _BAR_EVERY == 0:
@@ -168,6 +193,7 @@ def dataset_info(
     n_episodes: int,
     episode_steps: int,
     maze_map: list[list[int | str]] | None = None,
+    disturbance: Pushes | None = None,
 ) -> DatasetInfo:
     """Metadata of a dataset made by `generate_episodes` with the same arguments.
 
@@ -192,6 +218,8 @@ def dataset_info(
         "continuous": True,
         "maze_layout": layout,
     }
+    if disturbance is not None and disturbance.active:  # absent: datasets stay as they were
+        generator["disturbance"] = disturbance.to_dict()
     return DatasetInfo(
         name=name,
         source="maze",

@@ -27,6 +27,7 @@ import torch
 
 from pipeline.config import ValidateParams
 from pipeline.envs.batch import BatchSim
+from pipeline.envs.disturbance import Pushes
 from pipeline.envs.spec import EnvSpec
 from pipeline.errors import UserError
 from pipeline.model.dynamics import DynamicsModel
@@ -274,7 +275,8 @@ def run_open_loop(
     physics = np.repeat(segments.physics[starts], cfg.repeats, axis=0)
     observed = np.repeat(segments.states[starts], cfg.repeats, axis=0)
     labels = _labels(segments, np.repeat(starts, cfg.repeats))
-    sim = BatchSim(spec, len(physics))
+    sim = BatchSim(spec, len(physics), pushes=Pushes.of_dataset(segments.info.generator))
+    push_seeds = [cfg.seed * 1_000_003 + j for j in range(len(physics))]  # same in both modes
 
     def rep(x: torch.Tensor) -> torch.Tensor:
         return x.repeat_interleave(cfg.repeats, dim=0)
@@ -285,6 +287,7 @@ def run_open_loop(
         generator = torch.Generator().manual_seed(cfg.seed)
         for mode in MODES:
             restore(sim, physics, observed, labels)
+            sim.seed_pushes(push_seeds)
             s0 = torch.as_tensor(sim.observe()[:: cfg.repeats], dtype=torch.float32, device=device)
             if mode == "prior":
                 eps = torch.randn(len(s0), cfg.skills, model.config.z_dim, generator=generator)
