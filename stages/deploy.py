@@ -34,7 +34,7 @@ from pipeline.evaluation.compat import check_model_dims, check_same_environment
 from pipeline.evaluation.episodes import EpisodeResult, PlanCall, RunConfig, run_episodes
 from pipeline.evaluation.flops import replan_flops
 from pipeline.evaluation.report import compare_planners
-from pipeline.evaluation.stats import latency_summary, task_summary
+from pipeline.evaluation.stats import latency_summary, optimism_gap, task_summary
 from pipeline.evaluation.tasks import EpisodeSpec, MazeTasks, check_task, train_locations
 from pipeline.io import atomic_dir, write_json
 from pipeline.model.checkpoint import load_dynamics, load_model, load_policy
@@ -83,6 +83,7 @@ class AgentSetup:
     agent: Agent
     replan_every: int | None
     about: dict[str, Any] = field(default_factory=dict)
+    plan_state_steps: int | None = None  # environment steps per predicted plan state
 
 
 def _check(meta: dict, segments: Segments, spec: EnvSpec, dims: tuple[int, int], what: str):
@@ -106,6 +107,7 @@ def _oposm(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, devi
         SkillMPC(model, planner, cfg.sample_actions, spec.goal_dims),
         cfg.replan_every or int(meta["window"]) - 1,
         {"model": str(model_dir), "model_step": meta.get("step"), **cfg.planner.model_dump()},
+        plan_state_steps=int(meta["window"]) - 1,  # a skill
     )
 
 
@@ -124,6 +126,7 @@ def _llp(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, device
         LowLevelMPC(planner, spec.goal_dims),
         cfg.execute,
         {"dynamics": str(dyn_dir), "bc": str(bc_dir), **cfg.model_dump()},
+        plan_state_steps=1,  # an action
     )
 
 
@@ -190,6 +193,18 @@ def run(params: Params, paths: Paths, progress: bool = True) -> dict[str, Any]:
     batches are small, and intra-op threads that wait on a busy core cost more than they give)."""
     with torch_threads(params.deploy.threads):
         return _run(params, paths, progress)
+
+
+def _optimism(
+    setup: AgentSetup, results: dict[str, list[EpisodeResult]], spec: EnvSpec
+) -> dict[str, Any] | None:
+    """Each task's optimism gap (`optimism_gap`) for a planning agent; None for the others."""
+    if setup.plan_state_steps is None or setup.replan_every is None:
+        return None
+    return {
+        task: optimism_gap(r, setup.plan_state_steps, setup.replan_every, spec.goal_dims)
+        for task, r in results.items()
+    }
 
 
 def _run_agent(
@@ -264,6 +279,7 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
                 "replan_every": setup.replan_every,
                 "flops_per_replan": flops,
                 "planning": latency_summary(calls),
+                "optimism_gap": _optimism(setup, results, spec),
                 "wall_s": time.perf_counter() - agent_started,
                 "settings": setup.about,
             }

@@ -198,6 +198,12 @@ def test_deploy_writes_a_valid_report_and_prints_a_summary(project):
     for agent in ("gcbc", "expert"):
         assert report["by_agent"][agent]["planning"]["calls"] == 0
         assert report["by_agent"][agent]["flops_per_replan"] is None
+        assert report["by_agent"][agent]["optimism_gap"] is None
+    # Optimism gap after one skill (OPOSM: plan state 1, 10 steps) or 3 actions (LLP: state 3).
+    assert oposm["optimism_gap"]["corners"]["steps_ahead"] == 10
+    assert llp["optimism_gap"]["random_goal"]["plan_state"] == 3
+    assert oposm["optimism_gap"]["corners"]["position_error_m"]["mean"] > 0
+    assert "optimism" in output and report["disturbance"] == {"probability": 0.0, "impulse": 0.0}
     compared = report["oposm_vs_llp"]
     assert compared["replan_s_p50"]["llp_over_oposm"] > 0 and "corners" in compared
     rows = json.loads((root / "data/reports/deploy/episodes.json").read_text())
@@ -332,3 +338,29 @@ def test_an_agent_without_its_model_names_the_stage_to_run(project, tmp_path):
     assert "agent llp: no bc policy" in line and "run `oposm bc` first" in line
     line = _one_line_error(runner.invoke(app, [*base, "deploy.agents=[gcbc]"]))
     assert "agent gcbc: no gcbc policy" in line and "run `oposm gcbc` first" in line
+
+
+def test_optimism_gap_is_real_minus_predicted_distance_where_the_executed_plan_ends():
+    """Plans that predict the agent 0.3 m closer to the goal than it gets: gap +0.3 m; exact
+    plans: 0; replans whose executed part runs past the episode's end are left out."""
+    from pipeline.evaluation.episodes import EpisodeResult
+    from pipeline.evaluation.stats import optimism_gap
+    from pipeline.evaluation.tasks import EpisodeSpec
+
+    def episode(offset: float, seed: int) -> EpisodeResult:
+        goal = np.array([10.0, 0.0])
+        r = EpisodeResult(EpisodeSpec("goal", seed, np.zeros(4), goal, seed))
+        r.trace.states = [np.array([0.1 * t, 0.0, 0.0, 0.0]) for t in range(26)]  # 0.1 m/step
+        for t in range(0, 26, 10):  # replans at 0, 10, 20; skills of 5 steps, 2 per replan
+            plan = [np.array([0.1 * (t + 5 * k) + offset * (k > 0), 0.0, 0, 0]) for k in range(4)]
+            r.trace.replan_steps.append(t)
+            r.trace.plans.append(np.stack(plan))
+        return r
+
+    optimistic = optimism_gap([episode(0.3, 0), episode(0.3, 1)], 5, 10, (0, 1))
+    assert optimistic["plan_state"] == 2 and optimistic["steps_ahead"] == 10
+    assert optimistic["replans"] == 4  # the replan at 20 would end at step 30 > 25
+    assert optimistic["distance_gap_m"]["mean"] == pytest.approx(0.3)
+    assert optimistic["position_error_m"]["mean"] == pytest.approx(0.3)
+    exact = optimism_gap([episode(0.0, 0), episode(0.0, 1)], 5, 10, (0, 1))
+    assert exact["distance_gap_m"]["mean"] == pytest.approx(0.0, abs=1e-12)

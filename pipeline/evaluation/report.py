@@ -77,6 +77,22 @@ def _planning_line(r: dict[str, Any]) -> str | None:
     )
 
 
+def _gap_line(gaps: dict[str, Any] | None) -> str | None:
+    """The optimism gap per task: real minus predicted distance to the goal where a plan's
+    executed part ends (positive: optimistic)."""
+    if not gaps:
+        return None
+    parts = []
+    for task, g in gaps.items():
+        gap = g["distance_gap_m"]
+        if gap["mean"] is not None:
+            lo, hi = gap["ci95"]
+            parts.append(f"{task} {gap['mean']:+.3f} m [{lo:+.3f}, {hi:+.3f}]")
+    if not parts:
+        return None
+    return "    optimism     real - predicted distance to goal after each plan: " + "; ".join(parts)
+
+
 def format_summary(report: dict[str, Any]) -> str:
     """Human-readable lines: per agent, success per task with its 95 % interval and planning
     cost; OPOSM vs LLP when both ran; recordings."""
@@ -91,6 +107,8 @@ def format_summary(report: dict[str, Any]) -> str:
         lines += [_task_line(task, r[task], report["success_radius"]) for task in report["tasks"]]
         if (planning := _planning_line(r)) is not None:
             lines.append(planning)
+        if (gap := _gap_line(r.get("optimism_gap"))) is not None:
+            lines.append(gap)
     if (c := report.get("oposm_vs_llp")) is not None:
         t = c["replan_s_p50"]
         lines.append(

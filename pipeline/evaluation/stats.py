@@ -81,3 +81,56 @@ def latency_summary(calls: list[PlanCall]) -> dict:
         "plans_per_s": planned / total_s if total_s > 0 else 0.0,
         "total_s": total_s,
     }
+
+
+def optimism_gap(
+    results: list[EpisodeResult], state_steps: int, every: int, goal_dims: Sequence[int]
+) -> dict:
+    """How much closer to the goal each plan said its executed part would get than it did.
+
+    At every replan at step t the chosen plan predicts where the agent will be after the part
+    that runs before the next replan: plan state k = `every // state_steps` (one per skill for
+    OPOSM, one per action for LLP), at step t + k * `state_steps`. The gap is the real distance
+    to the goal there minus the predicted one (positive: the plan was optimistic, the paper's
+    warning about naive VI), and the position error is how far the prediction was off. Replans
+    whose step is past the episode's end are left out. Means with 95 % intervals over episodes
+    (an episode's replans are not independent).
+
+    Args:
+        state_steps: Environment steps per predicted plan state (the skill length T, or 1).
+        every: Steps between replans.
+        goal_dims: The state dims a goal refers to.
+    """
+    k = max(1, every // state_steps)
+    dims = list(goal_dims)
+    gaps, errors, count = [], [], 0
+    for r in results:
+        states, goal = r.trace.states, r.spec.goal
+        ep_gaps, ep_errors = [], []
+        for t, plan in zip(r.trace.replan_steps, r.trace.plans, strict=True):
+            end = t + k * state_steps
+            if end >= len(states) or k >= len(plan):
+                continue
+            real, predicted = states[end][dims], plan[k][dims]
+            ep_gaps.append(np.linalg.norm(real - goal) - np.linalg.norm(predicted - goal))
+            ep_errors.append(np.linalg.norm(real - predicted))
+        if ep_gaps:
+            gaps.append(float(np.mean(ep_gaps)))
+            errors.append(float(np.mean(ep_errors)))
+            count += len(ep_gaps)
+
+    def mean_ci(values: list[float]) -> dict:
+        if not values:
+            return {"mean": None, "ci95": None}
+        v = np.asarray(values)
+        half = 1.96 * v.std(ddof=1) / np.sqrt(len(v)) if len(v) > 1 else float("inf")
+        return {"mean": float(v.mean()), "ci95": [float(v.mean() - half), float(v.mean() + half)]}
+
+    return {
+        "plan_state": k,
+        "steps_ahead": k * state_steps,
+        "replans": count,
+        "episodes": len(gaps),
+        "distance_gap_m": mean_ci(gaps),
+        "position_error_m": mean_ci(errors),
+    }
