@@ -92,7 +92,7 @@ def test_verdicts_follow_the_intervals_and_missing_runs_are_named(experiments):
     assert mass["verdict"] == "holds"  # 175/400 vs 100/400 off the nominal mass
     assert results["mass"]["perturbed_pooled"]["oposm"]["successes"] == 2 * (90 + 85)
     assert "maze sizes: large" in results["not_run"]
-    assert "EM vs naive VI (table 3)" in results["not_run"]
+    assert "EM vs naive VI (table 3): 0 of its runs exist" in results["not_run"]
     medium = results["mazes"]["medium"]["agents"]["oposm"]["random_goal"]
     assert medium["within_600"]["successes"] == 197
 
@@ -133,3 +133,34 @@ def test_dvc_reads_the_experiments_pipeline():
     assert out.returncode == 0, out.stderr
     names = {line.split()[0].split(":")[1] for line in out.stdout.splitlines() if line.strip()}
     assert {"train@large", "deploy@umaze", "mass@x0.2", "mass@x5", "results"} <= names
+
+
+def test_em_vi_verdicts_need_every_seed_on_one_side(tmp_path):
+    """Pushed maze, 3 seeds each: VI's calibration below all of EM's -> holds; optimism gaps
+    that interleave -> inconclusive. The table lists every run."""
+    datasets = [{"root": "data", "tag": "plain"}, {"root": "pushed", "tag": "pushed"}]
+    params = {
+        "deploy": {"roots": {}},
+        "mass": {"maze": "medium", "root": "data", "factors": {}},
+        "em_vi": {"datasets": datasets, "seeds": [0, 1, 2]},
+    }
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
+    within = {"em": [0.66, 0.70, 0.68], "vi": [0.41, 0.50, 0.45]}
+    gaps = {"em": [0.05, 0.20, 0.10], "vi": [0.15, 0.30, 0.08]}
+    for method in ("em", "vi"):
+        for seed in range(3):
+            run = tmp_path / f"pushed/runs/{method}-seed{seed}/reports"
+            first = {"tawm_nll": -0.1, "tawm_within_1sigma": within[method][seed]}
+            _write(run / "validate", {"prior": {"skills_1": first | {"tawm_error_mean": 0.3}}})
+            agent = _agent(90, 80, 0.1) | {
+                "optimism_gap": {"random_goal": {"distance_gap_m": {"mean": gaps[method][seed]}}}
+            }
+            _write(run / "deploy", _report({"oposm": agent}))
+    results = collect(tmp_path / "params.yaml", tmp_path)
+    verdicts = {c["claim"].split(", ")[1].split(" (")[0]: c["verdict"] for c in results["claims"]}
+    assert verdicts["VI's TAWM is overconfident: fewer real outcomes within 1 sigma than EM's"] == (
+        "holds"
+    )
+    assert verdicts["VI's plans are more optimistic than EM's"] == "inconclusive"
+    assert results["em_vi"]["pushed"]["vi"]["2"]["success"]["successes"] == 170
+    assert "| pushed | vi | 0 | -0.100 | 41.0 |" in markdown(results)
