@@ -21,6 +21,7 @@ import io
 import json
 import os
 import platform
+import subprocess
 from pathlib import Path
 from typing import Any
 
@@ -236,6 +237,28 @@ def _em_vi(exp: dict[str, Any], repo: Path) -> tuple[dict[str, Any], list[dict[s
     return table, claims
 
 
+_CODE = ("*.py", "pyproject.toml", "uv.lock")  # what DVC runs do not rewrite (locks, metrics)
+
+
+def _code_version(repo: Path) -> str | None:
+    """The git commit the results were assembled at (`+dirty` with uncommitted code changes)."""
+    try:
+        head = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=repo, capture_output=True, text=True
+        )
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no", "--", *_CODE],
+            cwd=repo,
+            capture_output=True,
+            text=True,
+        )
+    except OSError:
+        return None
+    if head.returncode != 0:
+        return None
+    return head.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
+
+
 def collect(experiments: Path, repo: Path) -> dict[str, Any]:
     """The numbers and verdicts of every experiment whose reports exist (`deploy.roots` and
     `mass.root` of `experiments` are relative to `repo`)."""
@@ -272,6 +295,7 @@ def collect(experiments: Path, repo: Path) -> dict[str, Any]:
         results["not_run"].append(f"EM vs naive VI (table 3): {runs_done} of its runs exist")
     results["not_run"].append("model selection (posterior vs prior NLL)")
     results["assembled_on"] = f"{platform.platform()}, {os.cpu_count()} CPUs"
+    results["code"] = _code_version(repo)
     return results
 
 
@@ -340,7 +364,8 @@ def markdown(results: dict[str, Any]) -> str:
         "",
         "Made by `uv run dvc repro experiments/dvc.yaml` (its `results` stage, `oposm results`) "
         "from the deploy reports of its runs; assembled on "
-        f"{results['assembled_on']}. "
+        f"{results['assembled_on']}, code at commit {results['code']} (the stages' own code "
+        "versions are in experiments/dvc.lock). "
         "Success rates in %, with 95 % Wilson intervals in brackets; differences with Newcombe "
         "intervals. Verdicts: a claim holds when the interval excludes the opposite.",
         "",
