@@ -1,0 +1,115 @@
+"""OGBench mazes: the spec against the real gymnasium env, layout, tasks, oracle, source, import."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.envs.batch import BatchSim
+from pipeline.envs.maze import layout_cell
+from pipeline.envs.ogbench import (
+    OGBENCH_MAZES,
+    make_ogbench_env,
+    ogbench_cell,
+    ogbench_cell_xy,
+    ogbench_tasks,
+)
+from pipeline.envs.spec import make_env_spec
+from pipeline.errors import UserError
+
+POINT = "pointmaze-medium-v0"
+
+
+def _walk_into_walls(rng: np.random.Generator, n: int) -> np.ndarray:
+    """`[n, 2]` actions that push in one direction for 20 steps at a time (so into walls),
+    with a few out of [-1, 1] (the spec clips them as OGBench's evaluation does)."""
+    directions = rng.uniform(-1, 1, (n // 20 + 1, 2))
+    actions = np.repeat(directions, 20, axis=0)[:n] + rng.normal(0, 0.2, (n, 2))
+    actions[::50] *= 3.0
+    return actions
+
+
+@pytest.mark.parametrize("env_id", ["pointmaze-medium-v0", "pointmaze-giant-v0"])
+def test_point_spec_steps_bit_for_bit_like_the_gymnasium_env(env_id: str) -> None:
+    """From the env's reset observation, `BatchSim` (set_observation + control_step + observe)
+    reproduces `env.step` exactly over 3000 steps that press on walls again and again."""
+    spec = make_env_spec(env_id)
+    env = make_ogbench_env(env_id, max_episode_steps=10**6, terminate_at_goal=False)
+    ob, _ = env.reset(seed=3, options={"task_id": 1})
+    sim = BatchSim(spec, 1)
+    sim.reset(ob[None])
+    rng = np.random.default_rng(0)
+    blocked = 0
+    for action in _walk_into_walls(rng, 3000):
+        before = ob
+        ob, *_ = env.step(np.clip(action, -1, 1))  # OGBench's evaluation clips, the env does not
+        assert sim.step(action[None]) == {}
+        np.testing.assert_array_equal(sim.observe()[0], ob)
+        free = before + 0.2 * np.clip(action, -1, 1)
+        blocked += not np.allclose(ob, free, atol=1e-9)
+    assert blocked > 100  # the walls really were hit (the contact path is covered)
+    assert spec.state_dim == 2 and spec.action_dim == 2 and spec.physics_dim == 5
+    assert spec.dt == pytest.approx(0.1) and spec.max_episode_steps == 1000
+    assert spec.goal_dims == (0, 1) and spec.goal_tolerance == 1.0
+
+
+def test_point_moves_by_a_fifth_of_the_action_in_free_space() -> None:
+    spec = make_env_spec(POINT)
+    sim = BatchSim(spec, 1)
+    start = ogbench_cell_xy((3, 3))  # the centre of a free cell: 2 m from any wall
+    sim.reset(start[None])
+    sim.step(np.array([[0.5, -1.0]]))
+    np.testing.assert_allclose(sim.observe()[0], start + [0.1, -0.2], atol=1e-12)
+
+
+def test_ant_spec_steps_bit_for_bit_like_the_gymnasium_env() -> None:
+    spec = make_env_spec("antmaze-medium-v0")
+    env = make_ogbench_env("antmaze-medium-v0", max_episode_steps=10**6, terminate_at_goal=False)
+    ob, _ = env.reset(seed=1, options={"task_id": 2})
+    sim = BatchSim(spec, 1)
+    sim.reset(ob[None])
+    rng = np.random.default_rng(1)
+    for _ in range(300):
+        action = rng.uniform(-1, 1, 8)
+        ob, *_ = env.step(action)
+        sim.step(action[None])
+        np.testing.assert_array_equal(sim.observe()[0], ob)
+    assert (spec.state_dim, spec.action_dim, spec.physics_dim) == (29, 8, 30)
+    assert spec.goal_tolerance == 0.5
+
+
+def test_layout_matches_ogbench_cells_and_walls() -> None:
+    """Every OGBench cell's centre falls in the layout cell of the same kind (free / wall), so
+    views, tasks and checks see OGBench's maze; `ogbench_cell` inverts `ogbench_cell_xy`."""
+    for env_id in ("pointmaze-medium-v0", "pointmaze-large-v0", "pointmaze-giant-v0"):
+        spec = make_env_spec(env_id)
+        layout = spec.layout
+        maze_map = np.asarray(make_ogbench_env(env_id).unwrapped.maze_map)
+        assert layout["ogbench_maze_map"] == maze_map.tolist()
+        assert len(layout["free_cells"]) == int((maze_map == 0).sum())
+        for (i, j), value in np.ndenumerate(maze_map):
+            xy = ogbench_cell_xy((i, j))
+            row, col = layout_cell(layout, *xy)
+            assert layout["maze_map"][row][col] == value
+            assert ogbench_cell(xy) == (i, j)
+        xmin, xmax, ymin, ymax = layout["bounds"]
+        assert (xmin, ymin) == (-6.0, -6.0)
+        assert (xmax, ymax) == (4 * maze_map.shape[1] - 6, 4 * maze_map.shape[0] - 6)
+
+
+def test_unsupported_ids_are_one_line_user_errors() -> None:
+    for bad in ("pointmaze-teleport-v0", "pointmaze-huge-v0"):
+        with pytest.raises(UserError) as err:
+            make_env_spec(bad)
+        message = str(err.value)
+        assert "\n" not in message and "pointmaze-medium-v0" in message
+    with pytest.raises(UserError, match="teleport"):
+        make_env_spec("antmaze-teleport-v0")
+    assert set(OGBENCH_MAZES) >= {"pointmaze-medium-v0", "pointmaze-large-v0", "pointmaze-giant-v0"}
+
+
+def test_tasks_are_ogbenchs() -> None:
+    tasks = ogbench_tasks(POINT)
+    assert [t["name"] for t in tasks] == [f"task{k}" for k in range(1, 6)]
+    assert tasks[0]["init_ij"] == (1, 1) and tasks[0]["goal_ij"] == (6, 6)
+    np.testing.assert_array_equal(tasks[0]["goal_xy"], [20.0, 20.0])
