@@ -297,10 +297,13 @@ class GCBCAgentParams(_Section):
 
 
 class ExpertAgentParams(_Section):
-    """`deploy.expert`: the scripted waypoint controller that made the data, as an agent."""
+    """`deploy.expert`: the scripted controller that made the data, as an agent (PointMaze:
+    waypoints + PD; OGBench: its BFS oracle's direction)."""
 
     action_noise: float | None = Field(
-        None, ge=0, description="Std of its action noise; null: the dataset's (D4RL: 0.5)."
+        None,
+        ge=0,
+        description="Std of its action noise; null: the dataset's (D4RL: 0.5; OGBench point: 0.5).",
     )
 
 
@@ -317,11 +320,12 @@ class DeployParams(_Section):
         description="Agents run on the same episodes: oposm (skill MPC), llp (low-level "
         "planning: `oposm dynamics` + `oposm bc`), gcbc (`oposm gcbc`), expert (the data's).",
     )
-    tasks: list[Literal["corners", "random_goal", "goal"]] = Field(
+    tasks: list[Literal["corners", "random_goal", "goal", "ogbench"]] = Field(
         default_factory=lambda: ["random_goal", "corners"],
         min_length=1,
         description="corners: D4RL's opposite-corner task; random_goal: goals from training "
-        "data, random start cell; goal: `goal` from random start cells.",
+        "data, random start cell; goal: `goal` from random start cells; ogbench: an OGBench "
+        "maze's five evaluation tasks (`episodes` each, success_radius must be OGBench's).",
     )
     episodes: int = Field(100, ge=1, description="Episodes per task.")
     goal: list[float] | None = Field(

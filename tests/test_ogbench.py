@@ -14,8 +14,11 @@ from pipeline.envs.ogbench import (
     ogbench_cell_xy,
     ogbench_tasks,
 )
+from pipeline.envs.ogbench_oracle import BFSOracle, OGBenchOracleAgent
 from pipeline.envs.spec import make_env_spec
 from pipeline.errors import UserError
+from pipeline.evaluation.episodes import RunConfig, run_episodes
+from pipeline.evaluation.tasks import MazeTasks
 
 POINT = "pointmaze-medium-v0"
 
@@ -113,3 +116,64 @@ def test_tasks_are_ogbenchs() -> None:
     assert [t["name"] for t in tasks] == [f"task{k}" for k in range(1, 6)]
     assert tasks[0]["init_ij"] == (1, 1) and tasks[0]["goal_ij"] == (6, 6)
     np.testing.assert_array_equal(tasks[0]["goal_xy"], [20.0, 20.0])
+
+
+# --- tasks and the oracle -------------------------------------------------------------------
+
+
+def _tasks(env_id: str = POINT, seed: int = 0) -> MazeTasks:
+    spec = make_env_spec(env_id)
+    return MazeTasks(spec.layout, np.zeros((0, 2)), 0.1, None, seed, spec.start_observation, env_id)
+
+
+def test_ogbench_task_episodes_follow_ogbenchs_cells_and_noise() -> None:
+    specs = _tasks().expand(["ogbench"], 40)
+    assert list(specs) == [f"ogbench-task{k}" for k in range(1, 6)]
+    for info, (name, episodes) in zip(ogbench_tasks(POINT), specs.items(), strict=True):
+        starts = np.stack([e.start for e in episodes])
+        goals = np.stack([e.goal for e in episodes])
+        assert starts.shape == (40, 2) and goals.shape == (40, 2)  # the point's state is x, y
+        assert np.abs(starts - info["init_xy"]).max() <= 1.0  # OGBench's add_noise: +-1
+        assert np.abs(goals - info["goal_xy"]).max() <= 1.0
+        assert np.abs(goals - info["goal_xy"]).max() > 0.8  # the noise is really there
+        assert all(e.task == name for e in episodes)
+    again = _tasks().expand(["ogbench"], 3)["ogbench-task2"]
+    np.testing.assert_array_equal(again[2].start, specs["ogbench-task2"][2].start)
+    other = _tasks(seed=1).expand(["ogbench"], 3)["ogbench-task2"]
+    assert not np.array_equal(other[2].start, again[2].start)
+
+
+def test_ogbench_task_outside_an_ogbench_maze_is_a_user_error() -> None:
+    spec = make_env_spec("PointMaze_Medium-v3")
+    tasks = MazeTasks(spec.layout, np.zeros((0, 2)), 0.1, None, 0, spec.start_observation, "")
+    with pytest.raises(UserError, match="OGBench maze"):
+        tasks.expand(["ogbench"], 2)
+
+
+def test_oracle_memo_agrees_with_ogbenchs_bfs_everywhere() -> None:
+    """The memoized subgoal equals OGBench's `get_oracle_subgoal` at random free positions."""
+    spec = make_env_spec("pointmaze-large-v0")
+    oracle = BFSOracle("pointmaze-large-v0")
+    maze = make_ogbench_env("pointmaze-large-v0").unwrapped
+    centers = np.asarray(spec.layout["free_cell_centers"])
+    rng = np.random.default_rng(0)
+    for _ in range(400):
+        xy = centers[rng.integers(len(centers))] + rng.uniform(-1.9, 1.9, 2)
+        goal = centers[rng.integers(len(centers))] + rng.uniform(-1.9, 1.9, 2)
+        expected, _ = maze.get_oracle_subgoal(xy, goal)
+        np.testing.assert_array_equal(oracle.subgoal(xy, goal), expected)
+        d = oracle.direction(xy, goal)
+        assert np.linalg.norm(d) == pytest.approx(1.0, abs=1e-5) or np.allclose(d, 0, atol=1e-5)
+
+
+def test_oracle_agent_solves_the_ogbench_tasks() -> None:
+    """OGBench's data-generating oracle (noise 0.5) reaches the goal in (nearly) every episode
+    of the medium maze's five tasks within 1000 steps, judged within 1.0 as OGBench does."""
+    spec = make_env_spec(POINT)
+    specs = [e for eps in _tasks().expand(["ogbench"], 4).values() for e in eps]
+    agent = OGBenchOracleAgent(POINT, noise=0.5)
+    results, _ = run_episodes(agent, BatchSim(spec, len(specs)), specs, RunConfig(1000, None, 1.0))
+    assert sum(r.success for r in results) >= 19
+    assert all(r.error is None for r in results)
+    with pytest.raises(UserError, match="issue 19"):
+        OGBenchOracleAgent("antmaze-medium-v0")
