@@ -15,6 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from pipeline.envs.expert import ExpertConfig
 from pipeline.envs.maze import SUPPORTED_ENVS
+from pipeline.envs.ogbench import OGBENCH_MAZES
 from pipeline.errors import UserError
 
 
@@ -73,6 +74,31 @@ class MinariSourceParams(_Section):
     )
 
 
+class OGBenchSourceParams(_Section):
+    """`ingest.ogbench`: OGBench maze data (`ingest.source: ogbench`), generated with OGBench's
+    recipe (sizes: `ingest.episodes` x `ingest.episode_steps`, `ingest.seed`) or imported from
+    a downloaded `.npz` (`path`)."""
+
+    env_id: Literal[tuple(OGBENCH_MAZES)] = Field(  # type: ignore[valid-type]
+        "pointmaze-medium-v0",
+        description="The OGBench maze (generation: point mazes only until the ant expert).",
+    )
+    dataset_type: Literal["navigate", "stitch", "explore"] = Field(
+        "navigate",
+        description="OGBench's recipe: navigate (new goal on reach), stitch (goals 4 cells "
+        "away), explore (random directions).",
+    )
+    noise: float | None = Field(
+        None, ge=0, description="Action noise std; null: OGBench's (point 0.5; explore 1.0)."
+    )
+    path: str | None = Field(
+        None, description="An OGBench .npz to import instead of generating; null: generate."
+    )
+    include_val: bool = Field(
+        True, description="Also import the file's -val.npz companion, when it is there."
+    )
+
+
 class IngestParams(_Section):
     """`oposm ingest`: demonstrations into `data/demos/<name>.mcap`."""
 
@@ -81,9 +107,10 @@ class IngestParams(_Section):
         pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]*$",
         description="Dataset name: the MCAP file stem and the segments directory name.",
     )
-    source: Literal["maze", "lerobot", "d4rl", "minari"] = Field(
+    source: Literal["maze", "lerobot", "d4rl", "minari", "ogbench"] = Field(
         "maze",
-        description="Where demonstrations come from: the built-in expert (maze) or an import.",
+        description="Where demonstrations come from: the built-in expert (maze), OGBench's "
+        "recipe or file (ogbench), or an import.",
     )
     env_id: Literal[tuple(SUPPORTED_ENVS)] = Field(  # type: ignore[valid-type]
         "PointMaze_Medium-v3", description="Gymnasium-robotics maze the expert drives in."
@@ -97,6 +124,7 @@ class IngestParams(_Section):
     lerobot: LeRobotSourceParams = Field(default_factory=LeRobotSourceParams)
     d4rl: D4RLSourceParams = Field(default_factory=D4RLSourceParams)
     minari: MinariSourceParams = Field(default_factory=MinariSourceParams)
+    ogbench: OGBenchSourceParams = Field(default_factory=OGBenchSourceParams)
 
 
 class SplitParams(_Section):

@@ -2,9 +2,14 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
+import yaml
+from typer.testing import CliRunner
 
+from cli import app
 from pipeline.envs.batch import BatchSim
 from pipeline.envs.maze import layout_cell
 from pipeline.envs.ogbench import (
@@ -19,8 +24,18 @@ from pipeline.envs.spec import make_env_spec
 from pipeline.errors import UserError
 from pipeline.evaluation.episodes import RunConfig, run_episodes
 from pipeline.evaluation.tasks import MazeTasks
+from pipeline.recording import read_info
+from pipeline.sources.ogbench import (
+    check_ogbench_dataset,
+    generate_ogbench,
+    make_recipe,
+    read_ogbench,
+    write_ogbench_npz,
+)
+from pipeline.viz.dataset import write_dataset_view
 
 POINT = "pointmaze-medium-v0"
+runner = CliRunner()
 
 
 def _walk_into_walls(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -177,3 +192,144 @@ def test_oracle_agent_solves_the_ogbench_tasks() -> None:
     assert all(r.error is None for r in results)
     with pytest.raises(UserError, match="issue 19"):
         OGBenchOracleAgent("antmaze-medium-v0")
+
+
+# --- the ogbench source: generation, .npz import, bad input ---------------------------------
+
+
+@pytest.fixture(scope="module")
+def generated():
+    """4 navigate episodes x 301 steps in the medium maze, by OGBench's recipe."""
+    recipe = make_recipe(POINT, "navigate", 4, 301, seed=5)
+    data = generate_ogbench(recipe, "gen")
+    return data.info, list(data.episodes)
+
+
+def test_generated_data_follows_the_recipe(generated) -> None:
+    info, episodes = generated
+    assert info.source == "ogbench" and info.env_id == POINT and info.state_names == ["x", "y"]
+    assert info.generator["noise"] == 0.5 and info.generator["dataset_type"] == "navigate"
+    assert [len(e) for e in episodes] == [301] * 4
+    report = check_ogbench_dataset(episodes, info)
+    assert report.problems == [] and report.n_steps == 4 * 301
+    assert report.goals_reached >= 4  # navigate: the oracle reaches goal after goal ...
+    for ep in episodes:
+        assert np.abs(ep.actions).max() <= 1.0
+        for t in np.flatnonzero(ep.goal_reached[:-1]):  # ... and then pursues a new one
+            assert not np.array_equal(ep.goals[t + 1], ep.goals[t])
+            assert np.linalg.norm(ep.observations[t + 1] - ep.goals[t]) <= 1.0
+    again = list(generate_ogbench(make_recipe(POINT, "navigate", 4, 301, seed=5), "gen").episodes)
+    assert all(np.array_equal(a.physics, b.physics) for a, b in zip(again, episodes, strict=True))
+
+
+def test_recorded_physics_replays_exactly(generated) -> None:
+    """Each recorded state, restored into the batched simulator and stepped with the recorded
+    action, gives the next recorded observation (validate relies on it)."""
+    info, episodes = generated
+    spec = make_env_spec(info.env_id)
+    sim = BatchSim(spec, 300)
+    for ep in episodes[:2]:
+        sim.set_state(ep.physics[:-1])
+        assert sim.step(ep.actions[:-1]) == {}
+        np.testing.assert_allclose(sim.observe(), ep.observations[1:], rtol=0, atol=1e-12)
+
+
+def test_npz_round_trip_with_its_val_companion(generated, tmp_path) -> None:
+    """Our episodes written in OGBench's layout load with OGBench's own loader, and import back
+    (train file then -val file) with the same values and their provenance."""
+    from ogbench.utils import load_dataset
+
+    info, episodes = generated
+    path = tmp_path / "pointmaze-medium-navigate-v0.npz"
+    assert write_ogbench_npz(path, episodes[:3]) == 3 * 301
+    write_ogbench_npz(tmp_path / "pointmaze-medium-navigate-v0-val.npz", episodes[3:])
+    theirs = load_dataset(str(path), compact_dataset=True, add_info=True)
+    assert theirs["observations"].shape == (903, 2) and theirs["qpos"].shape == (903, 2)
+    data = read_ogbench(path, "imported")  # env id from the file name
+    imported = list(data.episodes)
+    assert data.info.env_id == POINT and data.frames == 4 * 301 and len(imported) == 4
+    assert [f["episodes"] for f in data.info.generator["files"]] == [3, 1]
+    assert data.info.generator["files"][1]["path"].endswith("-val.npz")
+    for ours, back in zip(episodes, imported, strict=True):
+        np.testing.assert_allclose(back.observations, ours.observations, atol=1e-5)
+        np.testing.assert_allclose(back.actions, ours.actions, atol=1e-6)
+        np.testing.assert_allclose(back.physics[:, 1:], ours.physics[:, 1:], atol=1e-5)
+        assert back.terminals[-1] and not back.terminals[:-1].any()
+    assert check_ogbench_dataset(imported, data.info).problems == []
+    assert len(list(read_ogbench(path, "x", POINT, include_val=False).episodes)) == 3
+
+
+def _npz(path, **arrays) -> None:
+    np.savez(path, **arrays)
+
+
+def _one_line(call) -> str:
+    with pytest.raises(UserError) as err:
+        call()
+    message = str(err.value)
+    assert "\n" not in message
+    return message
+
+
+def test_bad_npz_inputs_are_one_line_errors(generated, tmp_path) -> None:
+    ok = {"observations": np.zeros((5, 2)), "actions": np.zeros((5, 2)), "terminals": np.ones(5)}
+    _npz(tmp_path / "missing.npz", observations=ok["observations"], actions=ok["actions"])
+    message = _one_line(lambda: read_ogbench(tmp_path / "missing.npz", "x", POINT))
+    assert "terminals" in message and "actions, observations" in message  # what it has
+    _npz(tmp_path / "lengths.npz", **{**ok, "actions": np.zeros((4, 2))})
+    assert "different lengths" in _one_line(
+        lambda: read_ogbench(tmp_path / "lengths.npz", "x", POINT)
+    )
+    assert "pointmaze-medium-v0" in _one_line(
+        lambda: read_ogbench(tmp_path / "lengths.npz", "x", "pointmaze-teleport-v0")
+    )
+    # medium-maze data read as the large maze: its positions lie in the large maze's walls
+    _, episodes = generated
+    write_ogbench_npz(tmp_path / "data.npz", episodes)
+    message = _one_line(lambda: read_ogbench(tmp_path / "data.npz", "x", "pointmaze-large-v0"))
+    assert "another maze" in message
+    # ... or the file name says which maze it is
+    write_ogbench_npz(tmp_path / "pointmaze-medium-stitch-v0.npz", episodes[:1])
+    assert "make them agree" in _one_line(
+        lambda: read_ogbench(tmp_path / "pointmaze-medium-stitch-v0.npz", "x", "pointmaze-giant-v0")
+    )
+    _npz(tmp_path / "ant.npz", **{**ok, "observations": np.zeros((5, 29))})
+    assert "29 values" in _one_line(lambda: read_ogbench(tmp_path / "ant.npz", "x", POINT))
+    (tmp_path / "text.npz").write_text("not a zip")
+    assert "not a numpy .npz" in _one_line(lambda: read_ogbench(tmp_path / "text.npz", "x", POINT))
+    assert "not found" in _one_line(lambda: read_ogbench(tmp_path / "nope.npz", "x", POINT))
+    assert "dataset type" in _one_line(lambda: make_recipe(POINT, "path", 1, 10, 0))
+    ant = make_recipe("antmaze-medium-v0", "navigate", 1, 10, 0)
+    assert "issue 19" in _one_line(lambda: generate_ogbench(ant, "a"))
+
+
+def test_cli_ingest_ogbench_import_and_a_bad_file_leaves_nothing(generated, tmp_path) -> None:
+    _, episodes = generated
+    write_ogbench_npz(tmp_path / "pointmaze-medium-navigate-v0.npz", episodes[:2])
+    params = {
+        "ingest": {
+            "name": "og",
+            "source": "ogbench",
+            "ogbench": {"path": str(tmp_path / "pointmaze-medium-navigate-v0.npz")},
+        }
+    }
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
+    common = ["--params", str(tmp_path / "params.yaml"), "--data", str(tmp_path / "data")]
+    result = runner.invoke(app, ["ingest", *common])
+    assert result.exit_code == 0, result.output
+    assert read_info(tmp_path / "data/demos/og.mcap").env_id == POINT
+    report = json.loads((tmp_path / "data/reports/ingest/report.json").read_text())
+    assert report["n_problems"] == 0 and report["steps"] == 2 * 301
+    shown = runner.invoke(app, ["inspect", str(tmp_path / "data/demos/og.mcap")])
+    assert shown.exit_code == 0 and "x [m], y [m]" in shown.output
+    view = write_dataset_view(tmp_path / "data/demos/og.mcap", tmp_path / "og.rrd")
+    assert view == {"episodes": 2, "total": 2} and (tmp_path / "og.rrd").stat().st_size > 0
+    _npz(tmp_path / "bad.npz", observations=np.zeros((3, 2)), actions=np.zeros((3, 2)))
+    params["ingest"]["name"] = "bad"
+    params["ingest"]["ogbench"]["path"] = str(tmp_path / "bad.npz")
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
+    result = runner.invoke(app, ["ingest", *common])
+    assert result.exit_code == 1
+    assert len(result.stderr.strip().splitlines()) == 1 and "terminals" in result.stderr
+    assert not (tmp_path / "data/demos/bad.mcap").exists()
+    assert sorted(p.name for p in (tmp_path / "data/demos").iterdir()) == ["og.mcap"]
