@@ -333,3 +333,23 @@ def test_cli_ingest_ogbench_import_and_a_bad_file_leaves_nothing(generated, tmp_
     assert len(result.stderr.strip().splitlines()) == 1 and "terminals" in result.stderr
     assert not (tmp_path / "data/demos/bad.mcap").exists()
     assert sorted(p.name for p in (tmp_path / "data/demos").iterdir()) == ["og.mcap"]
+
+
+def test_deploy_refuses_another_success_radius_and_pools_the_five_tasks() -> None:
+    from pipeline.config import DeployParams
+    from pipeline.evaluation.episodes import EpisodeResult
+    from stages.deploy import _check_ogbench_radius, _ogbench_overall
+
+    spec = make_env_spec(POINT)
+    message = _one_line(lambda: _check_ogbench_radius(DeployParams(tasks=["ogbench"]), spec))
+    assert "deploy.success_radius: 1" in message
+    _check_ogbench_radius(DeployParams(tasks=["ogbench"], success_radius=1.0), spec)
+    _check_ogbench_radius(DeployParams(tasks=["corners"]), spec)  # its own radius is the user's
+    specs = _tasks().expand(["ogbench"], 2)
+    results = {
+        task: [EpisodeResult(s, steps_to_goal=10 if task.endswith("1") else None) for s in eps]
+        for task, eps in specs.items()
+    }
+    pooled = _ogbench_overall(results, 0.1, [])["ogbench"]
+    assert (pooled["episodes"], pooled["successes"]) == (10, 2)
+    assert _ogbench_overall({"corners": results["ogbench-task1"]}, 0.1, []) == {}
