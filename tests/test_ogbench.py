@@ -353,3 +353,36 @@ def test_deploy_refuses_another_success_radius_and_pools_the_five_tasks() -> Non
     pooled = _ogbench_overall(results, 0.1, [])["ogbench"]
     assert (pooled["episodes"], pooled["successes"]) == (10, 2)
     assert _ogbench_overall({"corners": results["ogbench-task1"]}, 0.1, []) == {}
+
+
+def test_an_ant_maze_npz_imports_with_its_physics(tmp_path) -> None:
+    """An OGBench ant file (29-dim observations, qpos 15, qvel 14: what issue 19 builds on)
+    imports with exact physics: restoring a recorded state and stepping the recorded action
+    gives the next recorded observation."""
+    env = make_ogbench_env("antmaze-medium-v0", max_episode_steps=10**6, terminate_at_goal=False)
+    rng = np.random.default_rng(0)
+    columns: dict[str, list] = {
+        k: [] for k in ("observations", "actions", "terminals", "qpos", "qvel")
+    }
+    for task in (1, 2):
+        ob, _ = env.reset(seed=task, options={"task_id": task})
+        for t in range(30):
+            action = rng.uniform(-1, 1, 8)
+            columns["observations"].append(ob)
+            columns["actions"].append(action)
+            columns["terminals"].append(t == 29)
+            ob, _, _, _, info = env.step(action)
+            columns["qpos"].append(info["prev_qpos"])
+            columns["qvel"].append(info["prev_qvel"])
+    np.savez(
+        tmp_path / "antmaze-medium-navigate-v0.npz", **{k: np.array(v) for k, v in columns.items()}
+    )
+    data = read_ogbench(tmp_path / "antmaze-medium-navigate-v0.npz", "ant")
+    episodes = list(data.episodes)
+    assert data.info.env_id == "antmaze-medium-v0" and data.info.state_dim == 29
+    assert data.info.physics_dim == 30 and [len(e) for e in episodes] == [30, 30]
+    assert check_ogbench_dataset(episodes, data.info).problems == []
+    sim = BatchSim(make_env_spec("antmaze-medium-v0"), 29)
+    sim.set_state(episodes[0].physics[:-1])
+    sim.step(episodes[0].actions[:-1])
+    np.testing.assert_allclose(sim.observe(), episodes[0].observations[1:], atol=1e-9)
