@@ -283,8 +283,10 @@ _stage_command(
 
     With `ingest.source: maze` a scripted expert (D4RL's maze2d waypoint controller) drives a
     gymnasium-robotics PointMaze for `ingest.episodes` x `ingest.episode_steps` steps. With
-    `lerobot`, `d4rl` or `minari` an existing dataset is imported (settings in `ingest.lerobot`,
-    `ingest.d4rl`, `ingest.minari`), e.g. `-S ingest.source=d4rl -S ingest.d4rl.path=FILE.hdf5`.
+    `ogbench`, OGBench's recipe drives its point maze (`ingest.ogbench`), or its downloaded .npz
+    is imported (`ingest.ogbench.path`). With `lerobot`, `d4rl` or `minari` an existing dataset
+    is imported (settings in `ingest.lerobot`, `ingest.d4rl`, `ingest.minari`), e.g.
+    `-S ingest.source=d4rl -S ingest.d4rl.path=FILE.hdf5`.
     """,
 )
 _stage_command(

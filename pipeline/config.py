@@ -15,6 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from pipeline.envs.expert import ExpertConfig
 from pipeline.envs.maze import SUPPORTED_ENVS
+from pipeline.envs.ogbench import OGBENCH_MAZES
 from pipeline.errors import UserError
 
 
@@ -83,6 +84,31 @@ class DisturbanceParams(_Section):
     )
 
 
+class OGBenchSourceParams(_Section):
+    """`ingest.ogbench`: OGBench maze data (`ingest.source: ogbench`), generated with OGBench's
+    recipe (sizes: `ingest.episodes` x `ingest.episode_steps`, `ingest.seed`) or imported from
+    a downloaded `.npz` (`path`)."""
+
+    env_id: Literal[tuple(OGBENCH_MAZES)] = Field(  # type: ignore[valid-type]
+        "pointmaze-medium-v0",
+        description="The OGBench maze (generation: point mazes only until the ant expert).",
+    )
+    dataset_type: Literal["navigate", "stitch", "explore"] = Field(
+        "navigate",
+        description="OGBench's recipe: navigate (new goal on reach), stitch (goals 4 cells "
+        "away), explore (random directions).",
+    )
+    noise: float | None = Field(
+        None, ge=0, description="Action noise std; null: OGBench's (point 0.5; explore 1.0)."
+    )
+    path: str | None = Field(
+        None, description="An OGBench .npz to import instead of generating; null: generate."
+    )
+    include_val: bool = Field(
+        True, description="Also import the file's -val.npz companion, when it is there."
+    )
+
+
 class IngestParams(_Section):
     """`oposm ingest`: demonstrations into `data/demos/<name>.mcap`."""
 
@@ -91,9 +117,10 @@ class IngestParams(_Section):
         pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]*$",
         description="Dataset name: the MCAP file stem and the segments directory name.",
     )
-    source: Literal["maze", "lerobot", "d4rl", "minari"] = Field(
+    source: Literal["maze", "lerobot", "d4rl", "minari", "ogbench"] = Field(
         "maze",
-        description="Where demonstrations come from: the built-in expert (maze) or an import.",
+        description="Where demonstrations come from: the built-in expert (maze), OGBench's "
+        "recipe or file (ogbench), or an import.",
     )
     env_id: Literal[tuple(SUPPORTED_ENVS)] = Field(  # type: ignore[valid-type]
         "PointMaze_Medium-v3", description="Gymnasium-robotics maze the expert drives in."
@@ -110,6 +137,7 @@ class IngestParams(_Section):
     lerobot: LeRobotSourceParams = Field(default_factory=LeRobotSourceParams)
     d4rl: D4RLSourceParams = Field(default_factory=D4RLSourceParams)
     minari: MinariSourceParams = Field(default_factory=MinariSourceParams)
+    ogbench: OGBenchSourceParams = Field(default_factory=OGBenchSourceParams)
 
 
 class SplitParams(_Section):
@@ -310,10 +338,13 @@ class GCBCAgentParams(_Section):
 
 
 class ExpertAgentParams(_Section):
-    """`deploy.expert`: the scripted waypoint controller that made the data, as an agent."""
+    """`deploy.expert`: the scripted controller that made the data, as an agent (PointMaze:
+    waypoints + PD; OGBench: its BFS oracle's direction)."""
 
     action_noise: float | None = Field(
-        None, ge=0, description="Std of its action noise; null: the dataset's (D4RL: 0.5)."
+        None,
+        ge=0,
+        description="Std of its action noise; null: the dataset's (D4RL: 0.5; OGBench point: 0.5).",
     )
 
 
@@ -330,11 +361,12 @@ class DeployParams(_Section):
         description="Agents run on the same episodes: oposm (skill MPC), llp (low-level "
         "planning: `oposm dynamics` + `oposm bc`), gcbc (`oposm gcbc`), expert (the data's).",
     )
-    tasks: list[Literal["corners", "random_goal", "goal"]] = Field(
+    tasks: list[Literal["corners", "random_goal", "goal", "ogbench"]] = Field(
         default_factory=lambda: ["random_goal", "corners"],
         min_length=1,
         description="corners: D4RL's opposite-corner task; random_goal: goals from training "
-        "data, random start cell; goal: `goal` from random start cells.",
+        "data, random start cell; goal: `goal` from random start cells; ogbench: an OGBench "
+        "maze's five evaluation tasks (`episodes` each, success_radius must be OGBench's).",
     )
     episodes: int = Field(100, ge=1, description="Episodes per task.")
     goal: list[float] | None = Field(

@@ -27,6 +27,8 @@ from pipeline.devices import resolve_device, torch_threads
 from pipeline.envs.batch import BatchSim
 from pipeline.envs.disturbance import Pushes
 from pipeline.envs.expert import ExpertConfig
+from pipeline.envs.ogbench import OGBenchMazeSpec
+from pipeline.envs.ogbench_oracle import POINT_NOISE, OGBenchOracleAgent
 from pipeline.envs.perturb import scale_mass
 from pipeline.envs.spec import EnvSpec, make_env_spec
 from pipeline.errors import UserError
@@ -35,7 +37,13 @@ from pipeline.evaluation.episodes import EpisodeResult, PlanCall, RunConfig, run
 from pipeline.evaluation.flops import replan_flops
 from pipeline.evaluation.report import compare_planners
 from pipeline.evaluation.stats import latency_summary, optimism_gap, task_summary
-from pipeline.evaluation.tasks import EpisodeSpec, MazeTasks, check_task, train_locations
+from pipeline.evaluation.tasks import (
+    OGBENCH_PREFIX,
+    EpisodeSpec,
+    MazeTasks,
+    check_task,
+    train_locations,
+)
 from pipeline.io import atomic_dir, write_json
 from pipeline.model.checkpoint import load_dynamics, load_model, load_policy
 from pipeline.paths import Paths
@@ -146,7 +154,23 @@ def _gcbc(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, devic
     )
 
 
+def _ogbench_oracle(params: Params, segments: Segments, spec: EnvSpec) -> AgentSetup:
+    """OGBench's data-generating BFS oracle, with the dataset's noise (or deploy.expert's)."""
+    noise = params.deploy.expert.action_noise
+    recorded = (segments.info.generator or {}).get("noise")
+    if noise is None:
+        noise = POINT_NOISE if recorded is None else float(recorded)
+    source = "deploy.expert" if params.deploy.expert.action_noise is not None else "the dataset's"
+    return AgentSetup(
+        OGBenchOracleAgent(spec.env_id, noise),
+        None,
+        {"config": "OGBench's BFS oracle (generate_locomaze.py)", "noise": noise, "from": source},
+    )
+
+
 def _expert(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, device) -> AgentSetup:
+    if isinstance(spec, OGBenchMazeSpec):
+        return _ogbench_oracle(params, segments, spec)
     recorded = (segments.info.generator or {}).get("expert")
     config = ExpertConfig(**recorded) if recorded else ExpertConfig()
     if params.deploy.expert.action_noise is not None:
@@ -235,6 +259,23 @@ def _run_agent(
     return results, calls
 
 
+def _check_ogbench_radius(cfg: DeployParams, spec: EnvSpec) -> None:
+    """OGBench's tasks count success within its own goal distance: refuse another one."""
+    tolerance = getattr(spec, "goal_tolerance", None)
+    if "ogbench" in cfg.tasks and tolerance is not None and cfg.success_radius != tolerance:
+        raise UserError(
+            f"deploy.success_radius is {cfg.success_radius:g}, but OGBench's tasks in "
+            f"{spec.env_id} succeed within {tolerance:g} of the goal; set deploy.success_radius: "
+            f"{tolerance:g}"
+        )
+
+
+def _ogbench_overall(results: dict[str, list[EpisodeResult]], dt: float, limits) -> dict:
+    """`{"ogbench": summary}` over OGBench's five tasks together (its headline number), if run."""
+    pooled = [r for task, rs in results.items() if task.startswith(OGBENCH_PREFIX) for r in rs]
+    return {"ogbench": task_summary(pooled, dt, limits)} if pooled else {}
+
+
 def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
     cfg, name = params.deploy, params.ingest.name
     for task in cfg.tasks:
@@ -250,8 +291,12 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
     envs = BatchSim(spec, n_envs, [scale_mass(spec.model, cfg.mass_scale)] * n_envs, pushes)
     goal = None if cfg.goal is None else np.asarray(cfg.goal, dtype=np.float64)
     locations = train_locations(segments, spec.goal_dims)
-    tasks = MazeTasks(spec.layout, locations, cfg.start_noise, goal, cfg.seed)
-    specs = {task: tasks.episodes(task, cfg.episodes) for task in cfg.tasks}  # checks first
+    tasks = MazeTasks(
+        spec.layout, locations, cfg.start_noise, goal, cfg.seed, spec.start_observation, spec.env_id
+    )
+    specs = tasks.expand(cfg.tasks, cfg.episodes)  # checks first; ogbench: its five tasks
+    _check_ogbench_radius(cfg, spec)
+    reported = [*specs, *(["ogbench"] if "ogbench" in cfg.tasks else [])]
     max_steps = cfg.max_steps or spec.max_episode_steps
     limits = [spec.max_episode_steps] if max_steps > spec.max_episode_steps else []
 
@@ -276,6 +321,7 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
             results, calls = _run_agent(setup, envs, specs, run_cfg, record, progress)
             by_agent[agent_name] = {
                 **{task: task_summary(r, spec.dt, limits) for task, r in results.items()},
+                **_ogbench_overall(results, spec.dt, limits),
                 "replan_every": setup.replan_every,
                 "flops_per_replan": flops,
                 "planning": latency_summary(calls),
@@ -283,8 +329,8 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
                 "wall_s": time.perf_counter() - agent_started,
                 "settings": setup.about,
             }
-            rows += [r.to_json() for task in cfg.tasks for r in results[task]]
-            episodes += [r for task in cfg.tasks for r in results[task]]
+            rows += [r.to_json() for task in specs for r in results[task]]
+            episodes += [r for task in specs for r in results[task]]
         write_overview(tmp / "overview.rrd", episodes, spec)
 
     report: dict[str, Any] = {
@@ -293,7 +339,7 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
         "device": str(device),
         "torch_threads": torch.get_num_threads(),
         "agents": list(cfg.agents),
-        "tasks": list(cfg.tasks),
+        "tasks": reported,
         "episodes": len(rows),
         "episodes_per_task": cfg.episodes,
         "success_radius": cfg.success_radius,

@@ -49,8 +49,8 @@ def _source(params: Params, progress: bool) -> tuple[DatasetInfo, Iterator[Episo
         return info, episodes
     if pushes.active:
         raise UserError(
-            f"ingest.disturbance: pushes only apply to data we simulate (source: maze), not to "
-            f"an import (source: {cfg.source}); set ingest.disturbance.probability=0"
+            f"ingest.disturbance: pushes apply to the built-in expert's data (source: maze) "
+            f"only, not to source: {cfg.source}; set ingest.disturbance.probability=0"
         )
     from pipeline.sources import open_source
 
@@ -59,13 +59,18 @@ def _source(params: Params, progress: bool) -> tuple[DatasetInfo, Iterator[Episo
 
 
 def _check(path: Path, info: DatasetInfo) -> DatasetReport | None:
-    """Maze checks of the written file: all of them for the built-in expert; for an import, only
+    """Maze checks of the written file: all of them for the built-in expert, OGBench's own for
+    OGBench data (`check_ogbench_dataset`); for another import, only
     when its env is a PointMaze we simulate (walls, bounds, jumps, physics, clock; episodes are
     not assumed continuous and someone else's demonstrator is not judged on its goal rate)."""
     from pipeline.sources import is_simulated_maze
 
     if info.source == "maze":
         return check_maze_dataset(iter_episodes(path), info)
+    if info.source == "ogbench":
+        from pipeline.sources.ogbench import check_ogbench_dataset
+
+        return check_ogbench_dataset(iter_episodes(path), info)
     if not is_simulated_maze(info):
         log.info("no maze checks: %s is not in a PointMaze we simulate", info.name)
         return None

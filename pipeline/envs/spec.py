@@ -4,7 +4,7 @@ An `EnvSpec` is built once from a dataset's `(env_id, env_kwargs)` (or the recor
 checkpoint) by `make_env_spec`. It owns the nominal MuJoCo model and the per-environment parts of
 stepping: how an observation is read from and written into `MjData`, and one control step. The
 batched simulator (`pipeline.envs.batch.BatchSim`) runs any spec; a new environment family (e.g.
-OGBench point / ant mazes) is a new spec class, nothing else.
+OGBench point / ant mazes, `pipeline.envs.ogbench`) is a new spec class, nothing else.
 
 It also carries the facts that other modules would otherwise hard-code: the sizes of states,
 actions and recorded physics states, which state dimensions a goal refers to (`goal_dims`: x, y
@@ -31,7 +31,11 @@ from pipeline.envs.maze import (
     point_env,
     step_point_mass,
 )
+from pipeline.envs.ogbench import OGBENCH_MAZES, OGBenchMazeSpec, is_ogbench_maze
 from pipeline.errors import UserError
+
+# Every env id `make_env_spec` builds a simulator for.
+SIMULATED_ENVS: tuple[str, ...] = (*SUPPORTED_ENVS, *OGBENCH_MAZES)
 
 
 class EnvSpec(Protocol):
@@ -59,6 +63,10 @@ class EnvSpec(Protocol):
     max_episode_steps: int
     layout: dict[str, Any]
     model: mujoco.MjModel
+
+    def start_observation(self, xy: np.ndarray) -> np.ndarray:
+        """The observation `[state_dim]` of an evaluation episode starting at rest at `xy [2]`."""
+        ...
 
     def observe(self, data: mujoco.MjData) -> np.ndarray:
         """The observation `[state_dim]` (float64) of a simulator."""
@@ -104,6 +112,10 @@ class PointMazeSpec:
         """`[time, x, y, vx, vy]`: 5."""
         return int(mujoco.mj_stateSize(self.model, PHYSICS_SPEC))
 
+    def start_observation(self, xy: np.ndarray) -> np.ndarray:
+        """`[x, y, 0, 0]`."""
+        return np.concatenate([np.asarray(xy, dtype=np.float64)[:2], np.zeros(2)])
+
     def observe(self, data: mujoco.MjData) -> np.ndarray:
         """`[x, y, vx, vy]` = qpos, qvel."""
         return np.concatenate([data.qpos, data.qvel])
@@ -121,13 +133,18 @@ class PointMazeSpec:
 def make_env_spec(env_id: str, env_kwargs: dict[str, Any] | None = None) -> EnvSpec:
     """The spec of a dataset's environment (`DatasetInfo.env_id`, `.env_kwargs`).
 
+    gymnasium-robotics PointMazes (`PointMazeSpec`, `env_kwargs` may hold a custom `maze_map`)
+    and OGBench's point and ant mazes (`pipeline.envs.ogbench`, no kwargs: their mazes are fixed).
+
     Raises:
         UserError: no simulator for `env_id` (e.g. data imported from a real robot).
     """
+    if is_ogbench_maze(env_id) or env_id.endswith("maze-teleport-v0"):
+        return OGBenchMazeSpec.create(env_id)  # teleport: the error says why not
     if env_id not in SUPPORTED_ENVS:
         raise UserError(
             f"no simulator for environment {env_id!r}; this needs one of "
-            f"{', '.join(SUPPORTED_ENVS)}"
+            f"{', '.join(SIMULATED_ENVS)}"
         )
     return PointMazeSpec.create(env_id, **(env_kwargs or {}))
 
@@ -145,7 +162,7 @@ def check_physics_dim(info: DatasetInfo, where: str, fix: str) -> None:
     Raises:
         UserError: `info.physics_dim` differs from the environment's `EnvSpec.physics_dim`.
     """
-    if not info.physics_dim or info.env_id not in SUPPORTED_ENVS:
+    if not info.physics_dim or info.env_id not in SIMULATED_ENVS:
         return
     expected = make_env_spec(info.env_id, info.env_kwargs).physics_dim
     if info.physics_dim != expected:

@@ -8,24 +8,31 @@
   the locations present in the training data, the start is a random free cell other than the
   goal's cell.
 - `goal`: a user-given goal (`deploy.goal`), from random free cells other than its own.
+- `ogbench`: an OGBench maze's five evaluation tasks exactly as OGBench defines them (its
+  `task_infos`: start and goal cells; both get uniform noise of +- 1 per axis, OGBench's
+  `add_noise`); they are reported as five tasks, `ogbench-task1` .. `ogbench-task5`
+  (`MazeTasks.expand`). Only in OGBench mazes (`pipeline.envs.ogbench`).
 
-Starts are cell centres plus uniform noise of +- `start_noise` per axis (D4RL's reset noise: 0.1),
-at rest. Every episode has its own seed, derived from (seed, task, episode), so an episode is the
-same whichever others run beside it.
+Other starts are cell centres plus uniform noise of +- `start_noise` per axis (D4RL's reset
+noise: 0.1). Every start is at rest (`EnvSpec.start_observation`). Every episode has its own
+seed, derived from (seed, task, episode), so an episode is the same whichever others run beside it.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from pipeline.envs.maze import layout_cell
+from pipeline.envs.ogbench import TASK_NOISE, is_ogbench_maze, ogbench_tasks
 from pipeline.errors import UserError
 from pipeline.segments import Segments
 
-TASKS = ("corners", "random_goal", "goal")
+TASKS = ("corners", "random_goal", "goal", "ogbench")
+OGBENCH_PREFIX = "ogbench-"
 
 
 @dataclass(frozen=True)
@@ -33,9 +40,10 @@ class EpisodeSpec:
     """One evaluation episode.
 
     Attributes:
-        task: Task name (one of `TASKS`).
+        task: Task name (one of `TASKS`; `ogbench-taskK` for OGBench's task K).
         index: Episode number within the task.
-        start: `[4]` initial state `[x, y, vx, vy]`.
+        start: `[state_dim]` initial state (`[x, y, vx, vy]` in a PointMaze, `[x, y]` for
+            OGBench's point).
         goal: `[2]` goal position `[x, y]`.
         seed: Seed of the episode's planner and action noise.
     """
@@ -94,6 +102,9 @@ class MazeTasks:
         start_noise: Uniform noise (+-, m) on start positions.
         goal: The `goal` task's `[x, y]`, or None.
         seed: Base seed of every episode.
+        start_state: `[x, y]` -> the initial state there at rest (`EnvSpec.start_observation`);
+            default `[x, y, 0, 0]` (PointMaze).
+        env_id: The environment, for its own tasks (`ogbench`: an OGBench maze's id).
     """
 
     def __init__(
@@ -103,8 +114,12 @@ class MazeTasks:
         start_noise: float = 0.1,
         goal: np.ndarray | None = None,
         seed: int = 0,
+        start_state: Callable[[np.ndarray], np.ndarray] | None = None,
+        env_id: str = "",
     ):
         self.layout = layout
+        self.start_state = start_state or (lambda xy: np.concatenate([xy, np.zeros(2)]))
+        self.env_id = env_id
         self.locations = locations
         self.start_noise = start_noise
         self.goal = None if goal is None else np.asarray(goal, dtype=np.float64)
@@ -114,9 +129,47 @@ class MazeTasks:
         if self.goal is not None:
             check_goal(layout, self.goal)
 
+    def expand(self, tasks: list[str], n: int) -> dict[str, list[EpisodeSpec]]:
+        """`n` episodes of each task by reported task name: `ogbench` becomes its five tasks."""
+        out: dict[str, list[EpisodeSpec]] = {}
+        for task in tasks:
+            if task == "ogbench":
+                out.update(self.ogbench_episodes(n))
+            else:
+                out[task] = self.episodes(task, n)
+        return out
+
+    def ogbench_episodes(self, n: int) -> dict[str, list[EpisodeSpec]]:
+        """`n` episodes of each of the OGBench maze's five tasks, `{"ogbench-task1": [...]}`."""
+        if not is_ogbench_maze(self.env_id):
+            raise UserError(
+                f"the ogbench task needs an OGBench maze (pointmaze-medium-v0, ...), but the data "
+                f"is in {self.env_id or 'no simulated environment'}; use corners or random_goal"
+            )
+        out = {}
+        for number, info in enumerate(ogbench_tasks(self.env_id), start=1):
+            name = OGBENCH_PREFIX + info["name"]
+            out[name] = [self._ogbench_episode(name, number, info, k) for k in range(n)]
+        return out
+
+    def _ogbench_episode(self, name: str, number: int, info: dict, k: int) -> EpisodeSpec:
+        seq = np.random.SeedSequence([self.seed, TASKS.index("ogbench"), number, k])
+        rng = np.random.default_rng(seq)
+        start = info["init_xy"] + rng.uniform(-TASK_NOISE, TASK_NOISE, 2)
+        goal = info["goal_xy"] + rng.uniform(-TASK_NOISE, TASK_NOISE, 2)
+        return EpisodeSpec(
+            task=name,
+            index=k,
+            start=self.start_state(start),
+            goal=goal,
+            seed=int(seq.generate_state(1)[0]),
+        )
+
     def episodes(self, task: str, n: int) -> list[EpisodeSpec]:
         """The first `n` episodes of `task` (the same ones for any `n` that includes them)."""
         check_task(task)
+        if task == "ogbench":
+            return [s for specs in self.ogbench_episodes(n).values() for s in specs]
         if task == "random_goal" and len(self.locations) == 0:
             raise UserError("random_goal needs training-data locations, and there are none")
         if task == "goal" and self.goal is None:
@@ -141,7 +194,7 @@ class MazeTasks:
         return EpisodeSpec(
             task=task,
             index=k,
-            start=np.concatenate([xy, np.zeros(2)]),
+            start=self.start_state(xy),
             goal=np.asarray(goal, dtype=np.float64).copy(),
             seed=int(seq.generate_state(1)[0]),
         )

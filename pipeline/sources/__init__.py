@@ -3,6 +3,7 @@
 - `read_lerobot`: a LeRobot v3.0 dataset, through `lerobot`.
 - `read_d4rl`: a D4RL hdf5 file, through h5py (maze2d coordinates converted for PointMaze).
 - `read_minari`: a local Minari dataset, through `minari`.
+- `read_ogbench` / `generate_ogbench`: OGBench maze data, from its `.npz` files or its recipe.
 - `export_lerobot`: one of our MCAP datasets as a LeRobot v3.0 dataset.
 
 `open_source(params.ingest)` picks the importer named by `ingest.source`. `lerobot` and `minari`
@@ -38,7 +39,8 @@ __all__ = [
 
 
 def open_source(cfg: IngestParams, progress: bool = False) -> ImportedDataset:
-    """Open the import named by `cfg.source` ("lerobot", "d4rl" or "minari") with its section."""
+    """Open the source named by `cfg.source` ("lerobot", "d4rl", "minari" or "ogbench") with its
+    section."""
     if cfg.source == "lerobot":
         lr = cfg.lerobot
         return read_lerobot(
@@ -71,4 +73,21 @@ def open_source(cfg: IngestParams, progress: bool = False) -> ImportedDataset:
             control_period=mn.control_period,
             progress=progress,
         )
-    raise UserError(f"ingest.source {cfg.source!r} is not an import; use lerobot, d4rl or minari")
+    if cfg.source == "ogbench":
+        return open_ogbench(cfg, progress)
+    raise UserError(
+        f"ingest.source {cfg.source!r} is not an import; use lerobot, d4rl, minari or ogbench"
+    )
+
+
+def open_ogbench(cfg: IngestParams, progress: bool = False) -> ImportedDataset:
+    """`ingest.ogbench`: import its `path`, or generate with OGBench's recipe."""
+    from pipeline.sources.ogbench import generate_ogbench, make_recipe, read_ogbench
+
+    og = cfg.ogbench
+    if og.path:
+        return read_ogbench(og.path, cfg.name, og.env_id, og.include_val, progress)
+    recipe = make_recipe(
+        og.env_id, og.dataset_type, cfg.episodes, cfg.episode_steps, cfg.seed, og.noise
+    )
+    return generate_ogbench(recipe, cfg.name, progress)
