@@ -245,6 +245,11 @@ class PlannerParams(_Section):
         None, gt=0, description="Stop a plan once its objective is below this; null: never."
     )
     warm_start: bool = Field(True, description="Start replans from the previous plan, shifted.")
+    compile: bool = Field(
+        False,
+        description="torch.compile the CEM iterations and, on CUDA, replay each plan as a CUDA "
+        "graph (the eager plans up to rounding; minutes of compilation on a small CPU).",
+    )
 
     @model_validator(mode="after")
     def _elites_fit(self) -> PlannerParams:

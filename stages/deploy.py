@@ -58,6 +58,7 @@ def planner_config(p: PlannerParams) -> PlannerConfig:
         init_std=p.init_std,
         prior_weight=p.prior_weight,
         warm_start=p.warm_start,
+        compile=p.compile,
     )
 
 
