@@ -23,9 +23,9 @@ from pipeline.planning.cem import CEMConfig
 from pipeline.planning.costs import GoalCost
 from pipeline.planning.llp import LLPConfig, LowLevelMPC, LowLevelPlanner
 from pipeline.planning.noise import problem_keys
+from pipeline.planning.settings import llp_config
 from pipeline.segments import build_segments
 from pipeline.training.bc import episode_ends, fit_policy, hindsight_goals
-from stages.deploy import llp_config
 
 ENV_ID = "PointMaze_Medium-v3"
 SPLIT = {"train": 0.6, "validation": 0.2, "test": 0.2}
