@@ -155,6 +155,12 @@ class TrainParams(_Section):
     val_windows: int = Field(2000, ge=1, description="Validation windows (a fixed subset).")
     checkpoint_every: int = Field(250, ge=1, description="Steps between resume-state saves.")
     seed: int = Field(0, description="Seed of initialization, sampling and noise.")
+    threads: int | None = Field(
+        1,
+        ge=1,
+        description="Torch CPU threads on CPU (1: never slowed down by a busy core; null: "
+        "torch's default, all cores: faster only on an idle machine).",
+    )
     device: Literal["auto", "cpu", "cuda"] = Field(
         "auto", description="auto: CUDA when available, else CPU."
     )
