@@ -23,7 +23,7 @@ def matmul_gflops(device: torch.device, m: int, k: int, n: int, seconds: float =
     flops, repeats, elapsed = 2.0 * m * k * n, 0, 0.0
     start = time.perf_counter()
     while elapsed < seconds:
-        for _ in range(max(1, int(1e9 / flops))):
+        for _ in range(max(1, int(1e8 / flops))):
             a @ b
             repeats += 1
         _sync(device)

@@ -109,11 +109,14 @@ class CEM:
 
     def init(self, mean: torch.Tensor, std: torch.Tensor | float) -> CEMState:
         """The state before the first iteration: `N(mean [B, *shape], std)` (std broadcast)."""
-        std = torch.as_tensor(std, dtype=mean.dtype, device=mean.device)
+        if isinstance(std, torch.Tensor):
+            std = torch.broadcast_to(std.to(mean), mean.shape).clone()
+        else:  # no host-to-device copy: a CUDA graph may be capturing
+            std = torch.full_like(mean, float(std))
         b = mean.shape[0]
         return CEMState(
             mean=mean.clone(),
-            std=torch.broadcast_to(std, mean.shape).clone(),
+            std=std,
             best=mean.clone(),
             best_cost=torch.full((b,), float("inf"), device=mean.device),
             best_extras=None,
