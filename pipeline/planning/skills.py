@@ -142,11 +142,15 @@ class SkillPlanner:
                 keys,
             )
         if self._compiled_step is None:
-            self._compiled_step = torch.compile(self._step)
+            # Dynamic batch from the start: one graph for every batch size above 1 (deploy's
+            # batches shrink as episodes end), not one per size up to dynamo's recompile limit.
+            self._compiled_step = torch.compile(self._step, dynamic=True)
         compiled = self._compiled_step
 
         def step(state: CEMState, _, iteration_keys: torch.Tensor) -> CEMState:
-            return compiled(state, iteration_keys, nets, s0, s0_n, prior0, cost)
+            # The first iteration (no best yet: another graph) runs eagerly.
+            run = self._step if state.best_extras is None else compiled
+            return run(state, iteration_keys, nets, s0, s0_n, prior0, cost)
 
         return self.cem.minimize(None, mean, self.config.init_std, keys, step=step)
 
