@@ -590,21 +590,30 @@ def bench_plan(
     envs: Annotated[int, typer.Option(help="Environments planned for at once.")] = 64,
     repeats: Annotated[int, typer.Option(help="Timed one-environment replans.")] = 10,
     batch_repeats: Annotated[int, typer.Option(help="Timed batched replans.")] = 3,
+    compiled: Annotated[
+        bool, typer.Option(help="Also time the compiled planner (minutes to compile on CPU).")
+    ] = False,
+    reference_envs: Annotated[
+        int | None, typer.Option(help="Environments the reference's batch is timed on.")
+    ] = None,
     params: ParamsOption = Path("params.yaml"),
     set_: SetOption = None,
     data: DataOption = Path("data"),
 ) -> None:
-    """Planning time and FLOPs per replan, OPOSM vs LLP, interleaved in one process.
+    """Planning time, FLOPs and GFLOP/s per replan: OPOSM vs the paper's procedure vs LLP.
 
-    One-env replans (p50/p95) and --envs at once (per env, plans/s) for deploy.planner, the
-    paper's table 14, deploy.llp (the paper code's LLP) and LLP at its timing figure's L 400,
-    100 iterations; FLOPs counted by torch. Needs `oposm train` (and `oposm dynamics`,
-    `oposm bc` for LLP)."""
+    In one process, interleaved: one-env replans (p50/p95) and --envs at once (per env, plans/s)
+    for deploy.planner and the paper's table 14, each batched (and --compiled) and as a plain
+    eager reference of the paper's procedure (one environment at a time; speedups are its time
+    over ours), deploy.llp (the paper code's LLP) and LLP at its timing figure's L 400, 100
+    iterations; FLOPs counted by torch, GFLOP/s against a measured matmul roofline. Needs
+    `oposm train` (and `oposm dynamics`, `oposm bc` for LLP)."""
     from bench.plan import bench_plan as run
     from pipeline.paths import Paths
 
     p = _load(params, set_)
-    _print_numbers(run(p, Paths(data), envs, repeats, batch_repeats), width=32, digits=4)
+    numbers = run(p, Paths(data), envs, repeats, batch_repeats, compiled, reference_envs)
+    _print_numbers(numbers, width=44, digits=4)
 
 
 expert_app = typer.Typer(

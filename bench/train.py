@@ -1,14 +1,19 @@
-"""Training benchmark (`oposm bench train`): EM (or VI) steps/s and sub-trajectories/s."""
+"""Training benchmark (`oposm bench train`): EM (or VI) steps/s, sub-trajectories (windows)/s,
+FLOPs per step (the matrix products of forward and backward passes, counted by torch) and the
+achieved GFLOP/s against a matrix-multiply measurement of the same device (`bench/roofline.py`)."""
 
 from __future__ import annotations
 
 import logging
+import os
 import time
 
 import torch
+from torch.utils.flop_counter import FlopCounterMode
 
+from bench.roofline import roofline
 from pipeline.config import Params
-from pipeline.devices import resolve_device
+from pipeline.devices import resolve_device, torch_threads
 from pipeline.model import SkillModel, SkillModelConfig
 from pipeline.paths import Paths
 from pipeline.segments import load_segments
@@ -18,48 +23,56 @@ from pipeline.training.updaters import make_updater
 log = logging.getLogger(__name__)
 
 
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+
+
 def bench_train(params: Params, paths: Paths, steps: int, warmup: int = 5) -> dict[str, float]:
     """Time `steps` update steps (after `warmup`) of `train.method` at the train params' model
-    size, on the segments of `ingest.name` (`oposm segment`)."""
+    size, on the segments of `ingest.name` (`oposm segment`), on `train.threads` CPU threads."""
     cfg = params.train
     device = resolve_device(cfg.device, "train.device")
     segments = load_segments(paths.segments(params.ingest.name))
-    log.info(
-        "timing %d %s steps (after %d warm-up) on %s: z %d, hidden %d, batch %d",
-        steps,
-        cfg.method,
-        warmup,
-        device,
-        cfg.z_dim,
-        cfg.hidden,
-        cfg.batch_size,
-    )
-    torch.manual_seed(cfg.seed)
-    config = SkillModelConfig(
-        segments.info.state_dim,
-        segments.info.action_dim,
-        cfg.z_dim,
-        cfg.hidden,
-        cfg.tawm_shared_std,
-        cfg.min_std,
-    )
-    model = SkillModel(config).to(device)
-    updater = make_updater(cfg.method, model, cfg.lr_e, cfg.lr_m, cfg.grad_clip)
-    sampler = WindowSampler(segments, "train", device, cfg.seed)
-    for _ in range(warmup):
-        updater.step(sampler.sample(cfg.batch_size))
-    if device.type == "cuda":
-        torch.cuda.synchronize()
-    start = time.perf_counter()
-    for _ in range(steps):
-        updater.step(sampler.sample(cfg.batch_size))
-    if device.type == "cuda":
-        torch.cuda.synchronize()
-    elapsed = time.perf_counter() - start
-    return {
-        "steps_per_s": steps / elapsed,
-        "windows_per_s": steps * cfg.batch_size / elapsed,
-        "ms_per_step": 1000 * elapsed / steps,
-        "parameters": float(sum(p.numel() for p in model.parameters())),
-        "threads": float(torch.get_num_threads()),
-    }
+    with torch_threads(cfg.threads if device.type == "cpu" else None):
+        log.info(
+            "timing %d %s steps (after %d warm-up) on %s: z %d, hidden %d, batch %d",
+            steps, cfg.method, warmup, device, cfg.z_dim, cfg.hidden, cfg.batch_size,
+        )  # fmt: skip
+        out: dict[str, float] = {"load_1min_before": os.getloadavg()[0]}
+        torch.manual_seed(cfg.seed)
+        config = SkillModelConfig(
+            segments.info.state_dim,
+            segments.info.action_dim,
+            cfg.z_dim,
+            cfg.hidden,
+            cfg.tawm_shared_std,
+            cfg.min_std,
+        )
+        model = SkillModel(config).to(device)
+        updater = make_updater(cfg.method, model, cfg.lr_e, cfg.lr_m, cfg.grad_clip)
+        sampler = WindowSampler(segments, "train", device, cfg.seed)
+        for _ in range(warmup):
+            updater.step(sampler.sample(cfg.batch_size))
+        with FlopCounterMode(display=False) as counter:
+            updater.step(sampler.sample(cfg.batch_size))
+        _sync(device)
+        start = time.perf_counter()
+        for _ in range(steps):
+            updater.step(sampler.sample(cfg.batch_size))
+        _sync(device)
+        elapsed = time.perf_counter() - start
+        flops = float(counter.get_total_flops())
+        out |= {
+            "steps_per_s": steps / elapsed,
+            "windows_per_s": steps * cfg.batch_size / elapsed,
+            "ms_per_step": 1000 * elapsed / steps,
+            "flops_per_step": flops,
+            "gflops": flops * steps / elapsed / 1e9,
+            "parameters": float(sum(p.numel() for p in model.parameters())),
+            "threads": float(torch.get_num_threads()),
+            "load_1min_after": os.getloadavg()[0],
+        }
+        out |= roofline(device, cfg.hidden)
+        out["roofline_fraction"] = out["gflops"] / out["roofline_gflops"]
+    return out

@@ -196,6 +196,12 @@ class TrainParams(_Section):
     val_windows: int = Field(2000, ge=1, description="Validation windows (a fixed subset).")
     checkpoint_every: int = Field(250, ge=1, description="Steps between resume-state saves.")
     seed: int = Field(0, description="Seed of initialization, sampling and noise.")
+    threads: int | None = Field(
+        1,
+        ge=1,
+        description="Torch CPU threads on CPU (1: never slowed down by a busy core; null: "
+        "torch's default, all cores: faster only on an idle machine).",
+    )
     device: Literal["auto", "cpu", "cuda"] = Field(
         "auto", description="auto: CUDA when available, else CPU."
     )
@@ -286,6 +292,11 @@ class PlannerParams(_Section):
         None, gt=0, description="Stop a plan once its objective is below this; null: never."
     )
     warm_start: bool = Field(True, description="Start replans from the previous plan, shifted.")
+    compile: bool = Field(
+        False,
+        description="torch.compile the CEM iterations and, on CUDA, replay each plan as a CUDA "
+        "graph (the eager plans up to rounding; minutes of compilation on a small CPU).",
+    )
 
     @model_validator(mode="after")
     def _elites_fit(self) -> PlannerParams:

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from pipeline.config import DeployParams, LLPParams, Params, PlannerParams
+from pipeline.config import DeployParams, Params
 from pipeline.devices import resolve_device, torch_threads
 from pipeline.envs.batch import BatchSim
 from pipeline.envs.disturbance import Pushes
@@ -48,40 +48,16 @@ from pipeline.io import atomic_dir, write_json
 from pipeline.model.checkpoint import load_dynamics, load_model, load_policy
 from pipeline.paths import Paths
 from pipeline.planning.agents import Agent, ExpertAgent, PolicyAgent
-from pipeline.planning.cem import CEMConfig
-from pipeline.planning.llp import LLPConfig, LowLevelMPC, LowLevelPlanner
+from pipeline.planning.llp import LowLevelMPC, LowLevelPlanner
 from pipeline.planning.mpc import SkillMPC
-from pipeline.planning.skills import PlannerConfig, SkillPlanner
+from pipeline.planning.settings import llp_config, planner_config
+from pipeline.planning.skills import SkillPlanner
 from pipeline.segments import Segments, load_segments
 from pipeline.viz.deploy import recording_name, write_episode_recording
 from pipeline.viz.overview import write_overview
 from stages.report import write_report
 
 log = logging.getLogger(__name__)
-
-
-def planner_config(p: PlannerParams) -> PlannerConfig:
-    """`deploy.planner` params -> the skill planner's config."""
-    return PlannerConfig(
-        horizon=p.horizon,
-        cem=CEMConfig(p.candidates, p.elites, p.iterations, p.min_std, p.stop_cost),
-        init_std=p.init_std,
-        prior_weight=p.prior_weight,
-        warm_start=p.warm_start,
-    )
-
-
-def llp_config(p: LLPParams) -> LLPConfig:
-    """`deploy.llp` params -> the low-level planner's config."""
-    return LLPConfig(
-        horizon=p.horizon,
-        execute=p.execute,
-        cem=CEMConfig(p.candidates, p.elites, p.iterations, p.min_std, p.stop_cost),
-        init_std=p.init_std,
-        l2_penalty=p.l2_penalty,
-        plan_from=p.plan_from,
-        warm_start=p.warm_start,
-    )
 
 
 @dataclass

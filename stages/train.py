@@ -18,7 +18,7 @@ from pathlib import Path
 import torch
 
 from pipeline.config import Params, TrainParams
-from pipeline.devices import resolve_device
+from pipeline.devices import resolve_device, torch_threads
 from pipeline.errors import UserError
 from pipeline.io import copy_dir, output_lock
 from pipeline.model import SkillModel, SkillModelConfig, save_model
@@ -34,7 +34,7 @@ from stages.report import write_headline
 log = logging.getLogger(__name__)
 
 # Params that change how long a run goes, not what it computes: a run may be resumed with new ones.
-_BUDGET_KEYS = {"max_steps", "max_minutes", "eval_every", "checkpoint_every", "device"}
+_BUDGET_KEYS = {"max_steps", "max_minutes", "eval_every", "checkpoint_every", "device", "threads"}
 
 
 def model_config(cfg: TrainParams, segments: Segments) -> SkillModelConfig:
@@ -98,6 +98,8 @@ def run(params: Params, paths: Paths, progress_bar: bool = True) -> Progress:
     with contextlib.ExitStack() as stack:
         if accelerator.is_main_process:  # one writer per model folder
             stack.enter_context(output_lock(paths.model(name)))
+        if accelerator.device.type == "cpu":
+            stack.enter_context(torch_threads(cfg.threads))
         return _train(params, paths, segments, segments_dir, accelerator, progress_bar)
 
 

@@ -19,12 +19,13 @@ from pipeline.model.checkpoint import load_policy, save_policy
 from pipeline.model.dynamics import DynamicsConfig, DynamicsModel
 from pipeline.model.policy import GaussianPolicy, PolicyConfig
 from pipeline.planning.agents import ExpertAgent, PolicyAgent
-from pipeline.planning.cem import CEMConfig, problem_generators
+from pipeline.planning.cem import CEMConfig
 from pipeline.planning.costs import GoalCost
 from pipeline.planning.llp import LLPConfig, LowLevelMPC, LowLevelPlanner
+from pipeline.planning.noise import problem_keys
+from pipeline.planning.settings import llp_config
 from pipeline.segments import build_segments
 from pipeline.training.bc import episode_ends, fit_policy, hindsight_goals
-from stages.deploy import llp_config
 
 ENV_ID = "PointMaze_Medium-v3"
 SPLIT = {"train": 0.6, "validation": 0.2, "test": 0.2}
@@ -95,7 +96,7 @@ def test_llp_plans_actions_along_its_predicted_states(llp_models):
     planner = LowLevelPlanner(policy, dynamics, LLPConfig(6, 3, CEMConfig(16, 4, 3)))
     s0 = torch.tensor([[0.0, 0.0, 0.0, 0.0], [1.0, -1.0, 0.2, 0.0]])
     goals = torch.tensor([[1.0, 1.0], [-1.0, 0.5]])
-    plan = planner.plan(s0, GoalCost(goals), problem_generators([1, 2], "cpu"))
+    plan = planner.plan(s0, GoalCost(goals), problem_keys([1, 2], "cpu"))
     assert plan.eps.shape == (2, 6, 2) and plan.actions.shape == (2, 6, 2)
     assert plan.states.shape == (2, 7, 4) and torch.equal(plan.states[:, 0], s0)
     # The actions are the BC policy's whitened ones at the predicted states, and the states are
@@ -106,7 +107,7 @@ def test_llp_plans_actions_along_its_predicted_states(llp_models):
     expected = torch.linalg.vector_norm(plan.states[:, 1:, :2] - goals[:, None], dim=-1).amin(-1)
     assert torch.allclose(plan.cost, expected)
     # One problem's plan does not depend on the other problems in the batch.
-    alone = planner.plan(s0[1:], GoalCost(goals[1:]), problem_generators([2], "cpu"))
+    alone = planner.plan(s0[1:], GoalCost(goals[1:]), problem_keys([2], "cpu"))
     assert torch.allclose(alone.eps[0], plan.eps[1], atol=1e-6)
     with pytest.raises(ValueError, match="p\\(a \\| s\\)"):
         LowLevelPlanner(GaussianPolicy(PolicyConfig(4, 2, (0, 1), 8)), dynamics, LLPConfig())

@@ -14,7 +14,7 @@ from pipeline.envs.spec import PointMazeSpec
 from pipeline.evaluation.episodes import RunConfig, run_episodes
 from pipeline.evaluation.tasks import EpisodeSpec
 from pipeline.model import SkillModel, SkillModelConfig
-from pipeline.planning import CEMConfig, PlannerConfig, SkillPlanner
+from pipeline.planning import CEMConfig, GoalCost, PlannerConfig, SkillPlanner, problem_keys
 from pipeline.planning.mpc import SkillMPC
 from pipeline.training.data import WindowBatch
 from pipeline.training.losses import e_objective, m_objective, vi_objective
@@ -105,9 +105,36 @@ def check_planning_matches_cpu(device: str) -> None:
     assert [c.envs for c in calls] == [2, 2, 2]
 
 
+def check_graphed_planner_matches_eager(device: str) -> None:
+    """The compiled, CUDA-graph planner gives the eager plans on the device and on the CPU (the
+    noise streams are the same on every device); padded batch sizes and a second replay too."""
+    cpu = _model().eval()
+    dev = copy.deepcopy(cpu).to(device)
+    g = torch.Generator().manual_seed(3)
+    s0, goals = torch.randn(3, 4, generator=g), torch.randn(3, 2, generator=g)
+    config = PlannerConfig(4, CEMConfig(32, 8, 6), prior_weight=0.5)
+    graphed = SkillPlanner(dev, PlannerConfig(**{**config.__dict__, "compile": True}))
+    for rows in (slice(0, 3), slice(1, 3), slice(0, 3)):  # 3 -> graph of 4, 2 -> graph of 2
+        keys = problem_keys([7, 8, 9], "cpu")[rows]
+        want = SkillPlanner(cpu, config).plan(s0[rows], GoalCost(goals[rows]), keys)
+        for planner in (SkillPlanner(dev, config), graphed):
+            got = planner.plan(
+                s0[rows].to(device), GoalCost(goals[rows].to(device)), keys.to(device)
+            )
+            for field in ("eps", "states", "cost", "objective"):
+                torch.testing.assert_close(
+                    getattr(got, field).cpu(), getattr(want, field), rtol=1e-3, atol=1e-3
+                )
+    assert sorted(graphed._graphs) == [2, 4]
+
+
 def test_training_objectives_gradients_and_an_em_step_on_cuda_match_cpu():
     check_training_matches_cpu("cuda")
 
 
 def test_skill_rollout_and_mpc_on_cuda_match_cpu():
     check_planning_matches_cpu("cuda")
+
+
+def test_compiled_cuda_graph_planner_matches_eager_and_cpu():
+    check_graphed_planner_matches_eager("cuda")

@@ -26,9 +26,9 @@ def _spied_agent(model, warm_start=True):
     starts: list[torch.Tensor] = []
     minimize = planner.cem.minimize
 
-    def spy(cost_fn, mean, std, generators):
+    def spy(cost_fn, mean, std, keys, step=None):
         starts.append(mean.clone())
-        return minimize(cost_fn, mean, std, generators)
+        return minimize(cost_fn, mean, std, keys, step)
 
     planner.cem.minimize = spy
     return SkillMPC(model, planner), starts

@@ -1,4 +1,5 @@
-"""The planner: CEM on known problems, batch independence, the goal cost, skill rollouts, MPC."""
+"""The planner: CEM on known problems, batch independence, the goal cost, skill rollouts, MPC,
+the counter-based noise streams, and the compiled planner against eager."""
 
 import numpy as np
 import pytest
@@ -13,21 +14,24 @@ from pipeline.planning import (
     GoalCost,
     PlannerConfig,
     SkillPlanner,
-    problem_generators,
+    problem_keys,
     shift_plan,
+    substream,
 )
+from pipeline.planning.fused import PlannerNets
 from pipeline.planning.mpc import SkillMPC
+from pipeline.planning.noise import normal
 
 CENTRES = torch.tensor([[[1.0, -2.0, 0.5], [0.0, 3.0, -1.0]], [[-4.0, 0.0, 2.0], [1.0, 1.0, 1.0]]])
 
 
 def quadratic(centres: torch.Tensor, calls: list | None = None):
-    """Cost sum((x - c_b)^2) of candidates `[A, K, 2, 3]` of problems `rows`."""
+    """Cost sum((x - c_b)^2) of candidates `[B, K, 2, 3]`; extras: the candidates' first row."""
 
-    def cost(x: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+    def cost(x: torch.Tensor) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
         if calls is not None:
-            calls.append(rows.tolist())
-        return (x - centres[rows][:, None]).pow(2).sum(dim=(-1, -2))
+            calls.append(x.shape[0])
+        return (x - centres[:, None]).pow(2).sum(dim=(-1, -2)), (x[:, :, 0],)
 
     return cost
 
@@ -35,8 +39,9 @@ def quadratic(centres: torch.Tensor, calls: list | None = None):
 def test_cem_finds_the_minimum_of_a_quadratic():
     cem = CEM(CEMConfig(population=64, elites=8, iterations=40))
     mean = torch.zeros(2, 2, 3)
-    result = cem.minimize(quadratic(CENTRES), mean, 2.0, problem_generators([0, 1], "cpu"))
+    result = cem.minimize(quadratic(CENTRES), mean, 2.0, problem_keys([0, 1], "cpu"))
     assert torch.allclose(result.best, CENTRES, atol=0.05)
+    assert torch.equal(result.extras[0], result.best[:, 0])  # the best candidate's extras
     assert torch.allclose(result.mean, CENTRES, atol=0.05)
     assert (result.cost < 0.01).all() and (result.iterations == 40).all()
     # The returned cost is the returned candidate's.
@@ -50,28 +55,27 @@ def test_cem_problems_planned_together_equal_planned_apart():
     mean = torch.stack([centres[0], torch.zeros(2, 3)])
     std = torch.stack([torch.full((2, 3), 0.01), torch.ones(2, 3)])
     calls: list = []
-    together = CEM(cfg).minimize(
-        quadratic(centres, calls), mean, std, problem_generators([7, 8], "cpu")
-    )
-    assert together.iterations[0] == 1 < together.iterations[1]
-    assert calls[1] == [1]  # a stopped problem costs no more evaluations
-    for b, seed in enumerate((7, 8)):
+    keys = problem_keys([7, 8], "cpu")
+    together = CEM(cfg).minimize(quadratic(centres, calls), mean, std, keys)
+    assert together.iterations[0] == 1 < together.iterations[1] == len(calls)
+    assert set(calls) == {2}  # fixed shapes: a stopped problem is frozen, not removed
+    for b in range(2):
         alone = CEM(cfg).minimize(
-            quadratic(centres[b : b + 1]), mean[b : b + 1], std[b : b + 1],
-            problem_generators([seed], "cpu"),
-        )  # fmt: skip
+            quadratic(centres[b : b + 1]), mean[b : b + 1], std[b : b + 1], keys[b : b + 1]
+        )
         assert torch.equal(alone.best[0], together.best[b])
         assert torch.equal(alone.cost[0], together.cost[b])
+        assert torch.equal(alone.mean[0], together.mean[b])
         assert alone.iterations[0] == together.iterations[b]
 
 
 def test_cem_ignores_nan_costs_and_rejects_bad_settings():
-    def cost(x, rows):
+    def cost(x):
         c = x.pow(2).sum(-1)
-        return torch.where(x[..., 0] > 0, torch.nan, c)  # NaN on half of the space
+        return torch.where(x[..., 0] > 0, torch.nan, c), ()  # NaN on half of the space
 
     result = CEM(CEMConfig(32, 4, 10)).minimize(
-        cost, torch.zeros(1, 2), 1.0, problem_generators([0], "cpu")
+        cost, torch.zeros(1, 2), 1.0, problem_keys([0], "cpu")
     )
     assert torch.isfinite(result.cost).all() and result.best[0, 0] <= 0
     with pytest.raises(UserError, match="elites"):
@@ -83,7 +87,7 @@ def test_goal_cost_is_the_distance_of_the_nearest_predicted_state():
     states = torch.zeros(1, 2, 4, 4)
     states[0, 0, :, :2] = torch.tensor([[1.0, 1.0], [4.0, 5.0], [1.0, 3.0], [7.0, 1.0]])
     states[0, 1, :, :2] = torch.tensor([[9.0, 9.0], [1.0, 1.5], [5.0, 5.0], [1.0, 1.0]])
-    cost = GoalCost(torch.tensor([[1.0, 1.0]]))(states, torch.tensor([0]))
+    cost = GoalCost(torch.tensor([[1.0, 1.0]]))(states)
     # Candidate 0: s_0 is at the goal but is not a prediction; nearest predicted is 2.0 away.
     # Candidate 1: the last state reaches the goal exactly.
     assert torch.allclose(cost, torch.tensor([[2.0, 0.0]]))
@@ -123,16 +127,18 @@ def test_batched_planning_matches_planning_each_env_alone(model):
     planner = SkillPlanner(model, PlannerConfig(horizon=3, cem=CEMConfig(24, 6, 5)))
     s0, goals = torch.randn(3, 4), torch.randn(3, 2)
     seeds = [11, 12, 13]
-    together = planner.plan(s0, GoalCost(goals), problem_generators(seeds, "cpu"))
+    keys = problem_keys(seeds, "cpu")
+    together = planner.plan(s0, GoalCost(goals), keys)
     for b in range(3):
-        alone = planner.plan(
-            s0[b : b + 1], GoalCost(goals[b : b + 1]), problem_generators(seeds[b : b + 1], "cpu")
-        )
+        alone = planner.plan(s0[b : b + 1], GoalCost(goals[b : b + 1]), keys[b : b + 1])
         assert torch.allclose(alone.eps[0], together.eps[b], atol=1e-5)
         assert torch.allclose(alone.states[0], together.states[b], atol=1e-5)
         assert torch.allclose(alone.cost[0], together.cost[b], atol=1e-5)
-    # The plan's states are the TAWM rollout of its skills, starting at s_0.
+    # The plan's states and skills, kept from the search, are the rollout of its eps from s_0.
     assert torch.equal(together.states[:, 0], s0)
+    again = rollout_skills(model, s0, eps=together.eps)
+    torch.testing.assert_close(together.states, again.states, rtol=0, atol=1e-5)
+    torch.testing.assert_close(together.z, again.z, rtol=0, atol=1e-5)
     assert together.z.shape == (3, 3, 3)
 
 
@@ -142,12 +148,12 @@ def test_the_prior_penalty_keeps_plans_near_the_prior_mean(model):
     for weight in (0.0, 100.0):
         config = PlannerConfig(horizon=3, cem=CEMConfig(32, 8, 5), prior_weight=weight)
         plans[weight] = SkillPlanner(model, config).plan(
-            s0, GoalCost(goals), problem_generators(range(4), "cpu")
+            s0, GoalCost(goals), problem_keys(range(4), "cpu")
         )
     assert plans[100.0].eps.pow(2).mean() < 0.5 * plans[0.0].eps.pow(2).mean()
     # `cost` is the task cost of the returned plan; `objective` adds the penalty.
     for weight, plan in plans.items():
-        task = GoalCost(goals)(plan.states[:, None], torch.arange(4))[:, 0]
+        task = GoalCost(goals)(plan.states[:, None])[:, 0]
         assert torch.allclose(plan.cost, task, atol=1e-5)
         penalty = weight * plan.eps.pow(2).mean(dim=(1, 2))
         assert torch.allclose(plan.objective, task + penalty, atol=1e-4)
@@ -172,3 +178,43 @@ def test_mpc_warm_starts_from_the_shifted_plan_and_acts_with_the_policy(model):
         draws.append(sampler.act(np.array([0, 1]), states))
     assert np.array_equal(draws[0], draws[1])
     assert not np.allclose(draws[0], agent.act(np.array([0, 1]), states))
+
+
+def test_noise_rows_depend_only_on_their_key_and_look_standard_normal():
+    keys = problem_keys([3, 1, 4, 1_000_000_007_000], "cpu")
+    z = normal(keys, (500, 6))
+    assert z.shape == (4, 500, 6) and z.dtype == torch.float32
+    for b in range(4):  # any batch: the same row
+        assert torch.equal(normal(keys[b : b + 1], (500, 6))[0], z[b])
+    assert abs(z.mean()) < 0.03 and abs(z.std() - 1) < 0.03
+    assert torch.corrcoef(z.reshape(4, -1)).sub(torch.eye(4)).abs().max() < 0.06
+    # Substreams (replans, iterations) differ; int and tensor counters give the same keys.
+    sub = substream(keys, 5)
+    assert torch.equal(sub, substream(keys, torch.full((4,), 5)))
+    assert not torch.equal(sub, substream(keys, 6)) and not torch.equal(sub, keys)
+    assert (substream(keys, torch.arange(4)) == torch.stack(
+        [substream(keys[i : i + 1], i)[0] for i in range(4)])).all()  # fmt: skip
+
+
+def test_planner_nets_equal_the_models_prior_and_tawm_mean(model):
+    nets = PlannerNets(model)
+    s, z = torch.randn(7, 4), torch.randn(7, 3)
+    for ours, theirs in zip(nets.prior(s), model.prior(s), strict=True):
+        torch.testing.assert_close(ours, theirs, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(
+        nets.tawm_mean(s, z), model.tawm(torch.cat([s, z], -1))[0], rtol=1e-5, atol=1e-6
+    )
+
+
+@pytest.mark.slow
+def test_compiled_planner_gives_the_eager_plans(model):
+    s0, goals = torch.randn(3, 4), torch.randn(3, 2)
+    keys = problem_keys([5, 6, 7], "cpu")
+    plans = {}
+    for compiled in (False, True):
+        config = PlannerConfig(3, CEMConfig(24, 6, 4), prior_weight=0.5, compile=compiled)
+        plans[compiled] = SkillPlanner(model, config).plan(s0, GoalCost(goals), keys)
+    for field in ("eps", "z", "states", "cost", "objective"):
+        eager, fast = getattr(plans[False], field), getattr(plans[True], field)
+        torch.testing.assert_close(fast, eager, rtol=1e-4, atol=1e-4)
+    assert torch.equal(plans[True].iterations, plans[False].iterations)

@@ -16,6 +16,7 @@ import torch
 
 from pipeline.envs.expert import ExpertConfig, WaypointExpert
 from pipeline.model.policy import GaussianPolicy
+from pipeline.planning.noise import normal, problem_keys, substream
 
 
 class PlanLike(Protocol):
@@ -64,24 +65,26 @@ class PolicyAgent:
         self.name = name
         self.device = policy.state_mean.device
         self._goals = torch.zeros(0)
-        self._rngs: list[np.random.Generator] = []
+        self._keys = torch.zeros(0, dtype=torch.long)  # [B] action-noise stream per slot
+        self._steps = torch.zeros(0, dtype=torch.long)  # [B] actions taken so far per slot
 
     def reset(self, goals: np.ndarray, seeds: Sequence[int]) -> None:
         self._goals = torch.as_tensor(goals, dtype=torch.float32, device=self.device)
-        self._rngs = [np.random.default_rng(int(s)) for s in seeds]
+        self._keys = problem_keys(seeds, self.device)
+        self._steps = torch.zeros(len(seeds), dtype=torch.long, device=self.device)
 
     def replan(self, rows: np.ndarray, states: np.ndarray) -> Any:
         raise RuntimeError("a static policy does not plan (run it with replan_every=None)")
 
+    @torch.no_grad()
     def act(self, rows: np.ndarray, states: np.ndarray) -> np.ndarray:
         s = torch.as_tensor(states, dtype=torch.float32, device=self.device)
         idx = torch.as_tensor(rows, dtype=torch.long, device=self.device)
-        stats = self.policy.action_stats(s, self._goals[idx])
-        mean, std = (x.double().cpu().numpy() for x in stats)
-        if not self.sample_actions:
-            return mean
-        noise = np.stack([self._rngs[i].standard_normal(mean.shape[1]) for i in rows])
-        return mean + std * noise
+        mean, std = self.policy.action_stats(s, self._goals[idx])
+        if self.sample_actions:  # each episode from its own stream, on the device
+            mean = mean + std * normal(substream(self._keys[idx], self._steps[idx]), mean.shape[1:])
+            self._steps[idx] += 1
+        return mean.double().cpu().numpy()
 
 
 class ExpertAgent:

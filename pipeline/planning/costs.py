@@ -19,12 +19,23 @@ class GoalCost:
 
     def __init__(self, goals: torch.Tensor, dims: tuple[int, ...] | None = None):
         self.goals = goals
-        self.dims = list(dims) if dims is not None else list(range(goals.shape[-1]))
+        self.dims = tuple(dims) if dims is not None else tuple(range(goals.shape[-1]))
         if len(self.dims) != goals.shape[-1]:
             raise ValueError(f"goal has {goals.shape[-1]} dims but dims={self.dims}")
 
-    def __call__(self, states: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
-        """Predicted `states [A, K, L + 1, sd]` (0: s_0) of problems `rows [A]` -> `[A, K]`."""
-        reached = states[:, :, 1:, self.dims]  # [A, K, L, G]
-        goal = self.goals[rows][:, None, None, :]  # [A, 1, 1, G]
+    def __call__(self, states: torch.Tensor) -> torch.Tensor:
+        """Predicted `states [B, K, L + 1, sd]` (0: s_0) of the B problems -> `[B, K]`."""
+        reached = _select(states[:, :, 1:], self.dims)  # [B, K, L, G]
+        goal = self.goals[:, None, None, :]  # [B, 1, 1, G]
         return torch.linalg.vector_norm(reached - goal, dim=-1).amin(dim=-1)
+
+    def with_goals(self, goals: torch.Tensor) -> GoalCost:
+        """The same cost with other goals `[B', G]` (e.g. a CUDA graph's static input)."""
+        return GoalCost(goals, self.dims)
+
+
+def _select(x: torch.Tensor, dims: tuple[int, ...]) -> torch.Tensor:
+    """`x[..., dims]`, as a slice when the dims are consecutive (a view, no gather)."""
+    if dims == tuple(range(dims[0], dims[0] + len(dims))):
+        return x[..., dims[0] : dims[0] + len(dims)]
+    return x[..., list(dims)]

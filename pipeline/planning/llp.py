@@ -25,8 +25,9 @@ import torch
 
 from pipeline.model.dynamics import DynamicsModel
 from pipeline.model.policy import GaussianPolicy
-from pipeline.planning.cem import CEM, CEMConfig, problem_generators
+from pipeline.planning.cem import CEM, CEMConfig
 from pipeline.planning.costs import GoalCost
+from pipeline.planning.noise import problem_keys, substream
 from pipeline.planning.skills import StateCost
 
 
@@ -131,40 +132,41 @@ class LowLevelPlanner:
         self,
         s0: torch.Tensor,
         cost: StateCost,
-        generators: Sequence[torch.Generator],
+        keys: torch.Tensor,
         init_mean: torch.Tensor | None = None,
     ) -> ActionPlan:
         """Plan from the start states `s0 [B, sd]` of B problems.
 
         Args:
             s0: `[B, sd]` current states (raw units).
-            cost: Cost of predicted states `[A, K, L + 1, sd]` for problems `rows [A]`.
-            generators: One generator per problem (on the models' device).
+            cost: Task cost of predicted states `[B, K, L + 1, sd]` -> `[B, K]`.
+            keys: `[B]` int64 random-stream keys, one per problem (`noise.problem_keys`).
             init_mean: `[B, L, ad]` initial epsilon means (warm start); zeros if None.
         """
         mean = self.initial_mean(len(s0)) if init_mean is None else init_mean
         weight = self.config.l2_penalty
 
-        def objective(eps: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
-            states = self.rollout(s0[rows, None], eps)[1]  # [A, K, L + 1, sd]
-            task = cost(states, rows)
-            return task + weight * eps.pow(2).mean(dim=(-2, -1)) if weight else task
+        def objective(eps: torch.Tensor) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
+            actions, states = self.rollout(s0[:, None], eps)  # [B, K, L + 1, sd]
+            task = cost(states)
+            penalized = task + weight * eps.pow(2).mean(dim=(-2, -1)) if weight else task
+            return penalized, (actions, states, task)
 
-        result = self.cem.minimize(objective, mean, self.config.init_std, generators)
-        eps = result.mean if self.config.plan_from == "mean" else result.best
-        actions, states = self.rollout(s0[:, None], eps[:, None])  # K = 1
-        rows = torch.arange(len(s0), device=s0.device)
-        task_cost = cost(states, rows)[:, 0]
-        return ActionPlan(
-            eps, actions[:, 0], states[:, 0], task_cost, result.cost, result.iterations
-        )
+        result = self.cem.minimize(objective, mean, self.config.init_std, keys)
+        if self.config.plan_from == "best":  # its path was computed in the search
+            eps, (actions, states, task_cost) = result.best, result.extras
+        else:  # CEM's final mean was never evaluated: roll it out
+            eps = result.mean
+            actions, states = (x[:, 0] for x in self.rollout(s0[:, None], eps[:, None]))
+            task_cost = cost(states[:, None])[:, 0]
+        return ActionPlan(eps, actions, states, task_cost, result.cost, result.iterations)
 
 
 class LowLevelMPC:
     """LLP as an agent for B environment slots: plan, execute `execute` planned actions, replan.
 
-    Each slot draws its CEM noise from its own generator, seeded per episode (results do not
-    depend on the other episodes sharing the batch).
+    Each slot draws its CEM noise from its own counter-based stream, keyed by the episode seed and
+    the replan number (results do not depend on the other episodes sharing the batch).
 
     Args:
         planner: The batched low-level planner.
@@ -177,7 +179,8 @@ class LowLevelMPC:
         self.planner = planner
         self.goal_dims = goal_dims
         self.device = planner.device
-        self._generators: list[torch.Generator] = []
+        self._keys = torch.zeros(0, dtype=torch.long)  # [B] random-stream key per slot
+        self._replans = torch.zeros(0, dtype=torch.long)  # [B] replans so far per slot
         self._goals = torch.zeros(0)
         self._eps: torch.Tensor | None = None  # [B, L, ad] last plan per slot (warm start)
         self._actions = np.zeros((0, 0, 0))  # [B, L, ad] planned raw actions per slot
@@ -188,7 +191,8 @@ class LowLevelMPC:
         """Start new episodes in all B slots: goals `[B, G]`, one seed per episode."""
         b = len(seeds)
         seq = [np.random.SeedSequence(int(s)).generate_state(1) for s in seeds]
-        self._generators = problem_generators([int(s[0]) for s in seq], self.device)
+        self._keys = problem_keys([int(s[0]) for s in seq], self.device)
+        self._replans = torch.zeros(b, dtype=torch.long, device=self.device)
         self._goals = torch.as_tensor(goals, dtype=torch.float32, device=self.device)
         self._eps = self.planner.initial_mean(b)
         ad = self.planner.policy.config.action_dim
@@ -210,9 +214,10 @@ class LowLevelMPC:
         plan = self.planner.plan(
             s0,
             GoalCost(self._goals[idx], self.goal_dims),
-            [self._generators[i] for i in rows.tolist()],
+            substream(self._keys[idx], self._replans[idx]),
             init,
         )
+        self._replans[idx] += 1
         self._eps[idx] = plan.eps
         self._warm[idx] = True
         self._actions[rows] = plan.actions.double().cpu().numpy()

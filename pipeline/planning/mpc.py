@@ -2,9 +2,10 @@
 the low-level policy, replan from the state reached.
 
 The agent drives a batch of environment slots. Each slot has its own random streams (CEM noise and
-action noise), seeded per episode, so what happens in one episode does not depend on the others
-sharing the batch. `replan` and `act` take the slots to serve (`rows`), so finished episodes
-simply drop out.
+action noise: counter-based, keyed by the episode's seed and the replan or step number), so what
+happens in one episode does not depend on the others sharing the batch. `replan` and `act` take
+the slots to serve (`rows`), so finished episodes simply drop out. Everything stays on the
+model's device; `act` copies its actions to the host once per environment step.
 """
 
 from __future__ import annotations
@@ -15,8 +16,8 @@ import numpy as np
 import torch
 
 from pipeline.model.skill_model import SkillModel
-from pipeline.planning.cem import problem_generators
 from pipeline.planning.costs import GoalCost
+from pipeline.planning.noise import normal, problem_keys, substream
 from pipeline.planning.skills import Plan, SkillPlanner, shift_plan
 
 
@@ -45,8 +46,10 @@ class SkillMPC:
         self.sample_actions = sample_actions
         self.goal_dims = goal_dims
         self.device = planner.device
-        self._generators: list[torch.Generator] = []
-        self._action_rngs: list[np.random.Generator] = []
+        self._plan_keys = torch.zeros(0, dtype=torch.long)  # [B] CEM-noise stream per slot
+        self._action_keys = torch.zeros(0, dtype=torch.long)  # [B] action-noise stream per slot
+        self._replans = torch.zeros(0, dtype=torch.long)  # [B] replans so far per slot
+        self._steps = torch.zeros(0, dtype=torch.long)  # [B] actions taken so far per slot
         self._goals = torch.zeros(0)  # [B, G] goal per slot
         self._eps: torch.Tensor | None = None  # [B, L, z] last plan per slot (warm start)
         self._z: torch.Tensor | None = None  # [B, z] skill being executed per slot
@@ -56,8 +59,10 @@ class SkillMPC:
         """Start new episodes in all B slots: goals `[B, G]`, one seed per episode."""
         b = len(seeds)
         seq = [np.random.SeedSequence(int(s)).generate_state(2) for s in seeds]
-        self._generators = problem_generators([int(s[0]) for s in seq], self.device)
-        self._action_rngs = [np.random.default_rng(int(s[1])) for s in seq]
+        self._plan_keys = problem_keys([int(s[0]) for s in seq], self.device)
+        self._action_keys = problem_keys([int(s[1]) for s in seq], self.device)
+        self._replans = torch.zeros(b, dtype=torch.long, device=self.device)
+        self._steps = torch.zeros(b, dtype=torch.long, device=self.device)
         self._goals = torch.as_tensor(goals, dtype=torch.float32, device=self.device)
         self._eps = self.planner.initial_mean(b)
         self._z = torch.zeros(b, self.model.config.z_dim, device=self.device)
@@ -75,9 +80,10 @@ class SkillMPC:
         plan = self.planner.plan(
             s0,
             GoalCost(self._goals[idx], self.goal_dims),
-            [self._generators[i] for i in rows.tolist()],
+            substream(self._plan_keys[idx], self._replans[idx]),
             init,
         )
+        self._replans[idx] += 1
         self._eps[idx] = plan.eps
         self._z[idx] = plan.z[:, 0]
         self._warm[idx] = True
@@ -86,13 +92,12 @@ class SkillMPC:
     @torch.no_grad()
     def act(self, rows: np.ndarray, states: np.ndarray) -> np.ndarray:
         """Actions `[A, ad]` (raw units, float64) of the current skill for slots `rows [A]`."""
-        s = torch.as_tensor(states, dtype=torch.float32, device=self.device)
-        z = self._z[torch.as_tensor(rows, dtype=torch.long, device=self.device)]
-        if not self.sample_actions:
-            return self.model.act(s, z).double().cpu().numpy()
-        dist = self.model.policy_dist(self.model.norm_states(s), z)
-        mean, std = dist.mean.double().cpu().numpy(), dist.stddev.double().cpu().numpy()
-        noise = np.stack([self._action_rngs[i].standard_normal(mean.shape[1]) for i in rows])
-        a_norm = mean + std * noise
         m = self.model
-        return a_norm * m.action_std.double().cpu().numpy() + m.action_mean.double().cpu().numpy()
+        idx = torch.as_tensor(rows, dtype=torch.long, device=self.device)
+        s = torch.as_tensor(states, dtype=torch.float32, device=self.device)
+        mean, std = m.policy(torch.cat([m.norm_states(s), self._z[idx]], dim=-1))
+        if self.sample_actions:
+            keys = substream(self._action_keys[idx], self._steps[idx])
+            mean = mean + std * normal(keys, mean.shape[1:])
+            self._steps[idx] += 1
+        return (mean * m.action_std + m.action_mean).double().cpu().numpy()

@@ -5,7 +5,16 @@ A plan is L vectors epsilon in the whitened skill space; skill i is
 the state it leads to is the TAWM mean `s_{i+1} = mu_psi(s_i, z_i)`. CEM searches epsilon-space,
 where reasonable plans lie in a unit ball around the origin (the demonstrator's skills) whatever the
 state. All K candidates of all B problems go through the model together: one prior and one TAWM
-pass per skill step.
+pass per skill step. Inside the search everything stays in the networks' normalized units (states
+are mapped to raw units once per rollout, for the task cost); the prior at s_0 is computed once
+for all K candidates; the networks run as `PlannerNets` (fused heads, in-place ReLUs, the TAWM's
+mean network only); the best plan's states, skills and task cost are kept from the search, not
+rolled out again.
+
+`PlannerConfig.compile` runs each CEM iteration through `torch.compile`; on CUDA the whole plan is
+also captured as one CUDA graph per (padded) batch size and replayed (fixed shapes, no host
+synchronization inside a plan: see `pipeline.planning.cem`). Both give the eager plans up to
+floating-point reassociation (tests/test_planning.py, tests/test_gpu.py).
 
 Optionally the objective adds `prior_weight * mean(eps^2)`, the whitened skills' negative log-prior
 up to constants (MAP-style planning). The paper plans on the task cost alone (§3); with a small,
@@ -16,17 +25,18 @@ was trained (measured: `deploy.planner.prior_weight` in the README).
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import torch
 
-from pipeline.model.rollout import rollout_skills
 from pipeline.model.skill_model import SkillModel
-from pipeline.planning.cem import CEM, CEMConfig
+from pipeline.planning.cem import CEM, CEMConfig, CEMResult, CEMState
+from pipeline.planning.costs import GoalCost
+from pipeline.planning.fused import PlannerNets
 
-# `(predicted states [A, K, L + 1, sd], rows [A]) -> cost [A, K]`, e.g. `GoalCost`.
-StateCost = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+# `predicted states [B, K, L + 1, sd] -> cost [B, K]`, e.g. `GoalCost`.
+StateCost = Callable[[torch.Tensor], torch.Tensor]
 
 
 @dataclass(frozen=True)
@@ -40,6 +50,8 @@ class PlannerConfig:
         prior_weight: Weight of the skill-prior penalty mean(eps^2) in the objective (0: paper).
         warm_start: Start each replan from the previous plan shifted by one skill (zeros appended)
             instead of from zeros.
+        compile: Run CEM iterations through `torch.compile` (and, on CUDA, replay each plan as a
+            CUDA graph); the same plans as eager up to floating-point rounding.
     """
 
     horizon: int = 10
@@ -47,6 +59,7 @@ class PlannerConfig:
     init_std: float = 1.0
     prior_weight: float = 0.0
     warm_start: bool = True
+    compile: bool = False
 
 
 @dataclass
@@ -77,6 +90,8 @@ class SkillPlanner:
         self.model = model
         self.config = config
         self.cem = CEM(config.cem)
+        self._compiled_step: Callable | None = None
+        self._graphs: dict[int, _GraphedPlan] = {}
 
     @property
     def device(self) -> torch.device:
@@ -86,35 +101,185 @@ class SkillPlanner:
         """`[B, L, z]` zeros: the prior's mean skills."""
         return torch.zeros(batch, self.config.horizon, self.model.config.z_dim, device=self.device)
 
+    @torch.no_grad()
     def plan(
         self,
         s0: torch.Tensor,
         cost: StateCost,
-        generators: Sequence[torch.Generator],
+        keys: torch.Tensor,
         init_mean: torch.Tensor | None = None,
     ) -> Plan:
         """Plan from the start states `s0 [B, sd]` of B problems.
 
         Args:
             s0: `[B, sd]` current states (raw units).
-            cost: Cost of predicted states `[A, K, L + 1, sd]` for problems `rows [A]`.
-            generators: One generator per problem (on the model's device).
+            cost: Task cost of predicted states `[B, K, L + 1, sd]` -> `[B, K]`.
+            keys: `[B]` int64 random-stream keys, one per problem (`noise.problem_keys`).
             init_mean: `[B, L, z]` initial epsilon means (warm start); zeros if None.
         """
         mean = self.initial_mean(len(s0)) if init_mean is None else init_mean
-        weight = self.config.prior_weight
+        if self.config.compile and s0.device.type == "cuda":
+            if not isinstance(cost, GoalCost):
+                raise ValueError("CUDA-graph planning takes a GoalCost (its goals are captured)")
+            result = self._graphed(len(s0)).run(s0, cost, keys, mean)
+        else:
+            result = self._search(s0, cost, keys, mean)
+        states, z, task = result.extras
+        return Plan(result.best, z, states, task, result.cost, result.iterations)
 
-        def objective(eps: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
-            states = rollout_skills(self.model, s0[rows, None], eps=eps).states  # [A, K, L+1, sd]
-            task = cost(states, rows)
-            return task + weight * eps.pow(2).mean(dim=(-2, -1)) if weight else task
+    def _search(
+        self, s0: torch.Tensor, cost: StateCost, keys: torch.Tensor, mean: torch.Tensor
+    ) -> CEMResult:
+        """The CEM search (eager, or with compiled iterations); extras: states, z, task cost."""
+        nets = PlannerNets(self.model)
+        s0_n = self.model.norm_states(s0)
+        prior0 = nets.prior(s0_n)  # once for all K candidates
+        if not self.config.compile:
+            return self.cem.minimize(
+                lambda eps: self._objective(eps, nets, s0, s0_n, prior0, cost),
+                mean,
+                self.config.init_std,
+                keys,
+            )
+        if self._compiled_step is None:
+            # Dynamic batch from the start: one graph for every batch size above 1 (deploy's
+            # batches shrink as episodes end), not one per size up to dynamo's recompile limit.
+            self._compiled_step = torch.compile(self._step, dynamic=True)
+        compiled = self._compiled_step
 
-        result = self.cem.minimize(objective, mean, self.config.init_std, generators)
-        best = rollout_skills(self.model, s0[:, None], eps=result.best[:, None])  # K = 1
-        task_cost = cost(best.states, torch.arange(len(s0), device=s0.device))[:, 0]
-        return Plan(
-            result.best, best.z[:, 0], best.states[:, 0], task_cost, result.cost, result.iterations
+        def step(state: CEMState, _, iteration_keys: torch.Tensor) -> CEMState:
+            # The first iteration (no best yet: another graph) runs eagerly.
+            run = self._step if state.best_extras is None else compiled
+            return run(state, iteration_keys, nets, s0, s0_n, prior0, cost)
+
+        return self.cem.minimize(None, mean, self.config.init_std, keys, step=step)
+
+    def _step(
+        self,
+        state: CEMState,
+        keys: torch.Tensor,
+        nets: PlannerNets,
+        s0: torch.Tensor,
+        s0_n: torch.Tensor,
+        prior0: tuple[torch.Tensor, torch.Tensor],
+        cost: StateCost,
+    ) -> CEMState:
+        """One CEM iteration with the objective built inside (what `torch.compile` takes)."""
+        return self.cem.step(
+            state, lambda eps: self._objective(eps, nets, s0, s0_n, prior0, cost), keys
         )
+
+    def _objective(
+        self,
+        eps: torch.Tensor,
+        nets: PlannerNets,
+        s0: torch.Tensor,
+        s0_n: torch.Tensor,
+        prior0: tuple[torch.Tensor, torch.Tensor],
+        cost: StateCost,
+    ) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
+        """Objective `[B, K]` of candidates `eps [B, K, L, z]`, and their states, skills, task."""
+        states, z = self._rollout(eps, nets, s0, s0_n, prior0)
+        task = cost(states)
+        weight = self.config.prior_weight
+        objective = task + weight * eps.pow(2).mean(dim=(-2, -1)) if weight else task
+        return objective, (states, z, task)
+
+    def _rollout(
+        self,
+        eps: torch.Tensor,
+        nets: PlannerNets,
+        s0: torch.Tensor,
+        s0_n: torch.Tensor,
+        prior0: tuple[torch.Tensor, torch.Tensor],
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Chain prior and TAWM mean over `eps [B, K, L, z]` from `s0 [B, sd]` (raw; `s0_n`
+        normalized, `prior0` its prior mean and std `[B, z]`): raw states `[B, K, L + 1, sd]`
+        (s_0 first) and skills `[B, K, L, z]`. The same chain as `rollout_skills`."""
+        m = self.model
+        b, k, n_skills, z_dim = eps.shape
+        sd = s0.shape[-1]
+        flat = eps.reshape(b * k, n_skills, z_dim)  # rows: one matrix product per network
+        s = s0_n[:, None].expand(b, k, sd).reshape(b * k, sd)
+        skills, states = [], []
+        for i in range(n_skills):
+            if i:
+                mu, sigma = nets.prior(s)
+                skills.append(torch.addcmul(mu, sigma, flat[:, i]))
+            else:
+                z0 = torch.addcmul(prior0[0][:, None], prior0[1][:, None], eps[:, :, 0])
+                skills.append(z0.reshape(b * k, z_dim))
+            s = nets.tawm_mean(s, skills[-1])
+            states.append(s)
+        predicted = torch.stack(states, dim=1) * m.state_std + m.state_mean  # [BK, L, sd]
+        start = s0[:, None, None].expand(b, k, 1, sd)
+        return (
+            torch.cat([start, predicted.view(b, k, n_skills, sd)], dim=2),
+            torch.stack(skills, dim=1).view(b, k, n_skills, z_dim),
+        )
+
+    def _graphed(self, batch: int) -> _GraphedPlan:
+        """The captured plan for `batch` problems (padded to a power of two: few graphs)."""
+        size = 1 << max(batch - 1, 0).bit_length()
+        if size not in self._graphs:
+            self._graphs[size] = _GraphedPlan(self, size)
+        return self._graphs[size]
+
+
+class _GraphedPlan:
+    """A whole plan of `size` problems captured as one CUDA graph (compiled CEM iterations, the
+    goal cost); inputs are copied into static buffers, padding rows repeat problem 0."""
+
+    def __init__(self, planner: SkillPlanner, size: int):
+        m, cfg = planner.model, planner.config
+        device = planner.device
+        self.size = size
+        self.s0 = torch.zeros(size, m.config.state_dim, device=device)
+        self.mean = torch.zeros(size, cfg.horizon, m.config.z_dim, device=device)
+        self.keys = torch.zeros(size, dtype=torch.long, device=device)
+        self.goals: torch.Tensor | None = None
+        self.planner = planner
+        self.graph: torch.cuda.CUDAGraph | None = None
+        self.out: CEMResult | None = None
+        self.dims: tuple[int, ...] | None = None
+
+    def _capture(self, cost: GoalCost) -> None:
+        self.goals = torch.zeros(self.size, cost.goals.shape[-1], device=self.s0.device)
+        self.dims = cost.dims
+        static_cost = cost.with_goals(self.goals)
+
+        def search() -> CEMResult:
+            return self.planner._search(self.s0, static_cost, self.keys, self.mean)
+
+        side = torch.cuda.Stream()
+        side.wait_stream(torch.cuda.current_stream())
+        with torch.cuda.stream(side):  # warm-up (compilation, allocator) off the capture
+            for _ in range(2):
+                search()
+        torch.cuda.current_stream().wait_stream(side)
+        self.graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(self.graph):
+            self.out = search()
+
+    def run(
+        self, s0: torch.Tensor, cost: GoalCost, keys: torch.Tensor, mean: torch.Tensor
+    ) -> CEMResult:
+        """Copy the inputs in, replay, copy the first `len(s0)` rows out."""
+        b = len(s0)
+        if self.graph is None or self.dims != cost.dims:
+            self._capture(cost)
+        pad = self.size - b
+        for static, value in ((self.s0, s0), (self.goals, cost.goals), (self.keys, keys),
+                              (self.mean, mean)):  # fmt: skip
+            static[:b].copy_(value)
+            if pad:
+                static[b:].copy_(value[:1].expand(pad, *value.shape[1:]))
+        self.graph.replay()
+        out = self.out
+        return CEMResult(
+            out.best[:b].clone(), out.cost[:b].clone(), out.mean[:b].clone(), out.std[:b].clone(),
+            out.iterations[:b].clone(), tuple(e[:b].clone() for e in out.extras),
+        )  # fmt: skip
 
 
 def shift_plan(eps: torch.Tensor) -> torch.Tensor:

@@ -46,12 +46,20 @@ class WindowSampler:
 
     def gather(self, idx: torch.Tensor) -> WindowBatch:
         """Windows at positions `idx [B]` of this split."""
-        steps = self.starts[idx.to(self.device)][:, None] + self.offsets
+        steps = self.starts[idx.to(self.device, non_blocking=True)][:, None] + self.offsets
         return WindowBatch(self.states[steps], self.actions[steps[:, :-1]])
 
     def sample(self, batch_size: int) -> WindowBatch:
-        """`batch_size` windows drawn uniformly."""
-        return self.gather(torch.randint(len(self), (batch_size,), generator=self.generator))
+        """`batch_size` windows drawn uniformly.
+
+        The indices come from the CPU generator (the same stream on every device, and resume
+        states that any device can load); on CUDA they travel from pinned memory without a
+        host synchronization.
+        """
+        idx = torch.randint(len(self), (batch_size,), generator=self.generator)
+        if self.device.type == "cuda":
+            idx = idx.pin_memory().to(self.device, non_blocking=True)
+        return self.gather(idx)
 
     def fixed_subset(self, n: int, seed: int) -> np.ndarray:
         """Positions of `n` windows (or all) chosen once, for repeatable validation."""

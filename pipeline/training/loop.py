@@ -1,12 +1,12 @@
 """The training loop: budget, periodic validation, best checkpoint, resume state, NaN guard.
 
 Parts come in through the constructor (model, updater, samplers, callbacks), so tests can pass
-small real ones. Update steps return dicts of floats; only this loop aggregates and logs them.
+small real ones. Update steps return dicts of 0-d tensors; only this loop aggregates them (summed
+on the device in float64, as Python floats were) and reads them back once per validation.
 """
 
 from __future__ import annotations
 
-import math
 import time
 from collections import defaultdict
 from collections.abc import Callable
@@ -100,8 +100,10 @@ class Trainer:
         limit = self.budget.max_minutes
         return limit is not None and progress.elapsed_s >= 60 * limit
 
-    def _validate(self, progress: Progress, train_sums: dict[str, float], n: int) -> None:
-        metrics = {f"train/{k}": v / max(n, 1) for k, v in train_sums.items()}
+    def _validate(self, progress: Progress, train_sums: dict[str, torch.Tensor], n: int) -> None:
+        names = list(train_sums)
+        sums = torch.stack([train_sums[k] for k in names]).tolist() if names else []  # one read
+        metrics = {f"train/{k}": v / max(n, 1) for k, v in zip(names, sums, strict=True)}
         metrics |= evaluate(self.model, self.val, self.val_idx)
         metrics["time/elapsed_s"] = progress.elapsed_s  # for error-vs-wall-time plots
         self.callbacks.log(progress.step, metrics)
@@ -119,7 +121,7 @@ class Trainer:
         """
         b = self.budget
         started, resumed_elapsed = time.monotonic(), progress.elapsed_s
-        sums: dict[str, float] = defaultdict(float)
+        sums: dict[str, torch.Tensor] = {}
         n = 0
         self.model.train()
         with tqdm(
@@ -129,8 +131,9 @@ class Trainer:
                 progress, started, resumed_elapsed
             ):
                 metrics = self.updater.step(self.train.sample(b.batch_size))
-                if not all(math.isfinite(v) for v in metrics.values()):
-                    bad = ", ".join(k for k, v in metrics.items() if not math.isfinite(v))
+                values = torch.stack([v.detach().reshape(()).double() for v in metrics.values()])
+                if not bool(values.isfinite().all()):  # the loop's one host read per step
+                    bad = ", ".join(k for k, v in metrics.items() if not torch.isfinite(v))
                     raise UserError(
                         f"training diverged at step {progress.step + 1} ({bad} not finite); "
                         "the last good checkpoint is kept; lower train.lr_e / train.lr_m "
@@ -138,13 +141,13 @@ class Trainer:
                     )
                 progress.step += 1
                 n += 1
-                for k, v in metrics.items():
-                    sums[k] += v
+                for k, v in zip(metrics, values, strict=True):
+                    sums[k] = sums[k] + v if k in sums else v
                 bar.update(1)
                 if progress.step % b.eval_every == 0:
                     self._validate(progress, sums, n)
                     bar.set_postfix(val_st_nll=f"{progress.best_st_nll:.3f}")
-                    sums, n = defaultdict(float), 0
+                    sums, n = {}, 0
                 if progress.step % b.checkpoint_every == 0:
                     self.callbacks.save_state(progress)
         self._out_of_time(progress, started, resumed_elapsed)

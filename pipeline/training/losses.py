@@ -30,7 +30,9 @@ def e_objective(
     return -(log_pi + log_prior - q.log_prob(z)).mean()
 
 
-def e_step_loss(model: SkillModel, batch: WindowBatch) -> tuple[torch.Tensor, dict[str, float]]:
+def e_step_loss(
+    model: SkillModel, batch: WindowBatch
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Eq. 15 with z ~ q_phi reparameterized.
 
     Minimizing it over phi alone minimizes KL(q_phi || p(z|s,a)), the causal posterior of
@@ -38,7 +40,7 @@ def e_step_loss(model: SkillModel, batch: WindowBatch) -> tuple[torch.Tensor, di
     """
     q = model.posterior_dist(batch.states[:, :-1], batch.actions)
     loss = e_objective(model, batch, q, q.rsample())
-    return loss, {"e_loss": loss.item()}
+    return loss, {"e_loss": loss.detach()}
 
 
 def m_objective(
@@ -55,7 +57,9 @@ def m_objective(
     return -sum(terms.values()).mean(), terms
 
 
-def m_step_loss(model: SkillModel, batch: WindowBatch) -> tuple[torch.Tensor, dict[str, float]]:
+def m_step_loss(
+    model: SkillModel, batch: WindowBatch
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Eq. 16 with z ~ q_phi (the posterior just updated by the E-step).
 
     z is sampled without gradient: the M-step updates theta, psi and omega only, and none of
@@ -65,10 +69,10 @@ def m_step_loss(model: SkillModel, batch: WindowBatch) -> tuple[torch.Tensor, di
         z = model.posterior_dist(batch.states[:, :-1], batch.actions).rsample()
     loss, terms = m_objective(model, batch, z)
     return loss, {
-        "m_loss": loss.item(),
-        "action_nll": -terms["log_pi"].mean().item(),
-        "st_nll": -terms["log_tawm"].mean().item(),
-        "prior_nll": -terms["log_prior"].mean().item(),
+        "m_loss": loss.detach(),
+        "action_nll": -terms["log_pi"].detach().mean(),
+        "st_nll": -terms["log_tawm"].detach().mean(),
+        "prior_nll": -terms["log_prior"].detach().mean(),
     }
 
 
@@ -85,15 +89,15 @@ def vi_objective(
     return -(terms["log_pi"] + terms["log_tawm"] - terms["kl"]).mean(), terms
 
 
-def vi_loss(model: SkillModel, batch: WindowBatch) -> tuple[torch.Tensor, dict[str, float]]:
+def vi_loss(model: SkillModel, batch: WindowBatch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Eq. 1 over all parameters jointly, z ~ q reparameterized (the naive-VI baseline)."""
     q = model.posterior_dist(batch.states[:, :-1], batch.actions)
     loss, terms = vi_objective(model, batch, q, q.rsample())
     return loss, {
-        "vi_loss": loss.item(),
-        "action_nll": -terms["log_pi"].mean().item(),
-        "st_nll": -terms["log_tawm"].mean().item(),
-        "kl": terms["kl"].mean().item(),
+        "vi_loss": loss.detach(),
+        "action_nll": -terms["log_pi"].detach().mean(),
+        "st_nll": -terms["log_tawm"].detach().mean(),
+        "kl": terms["kl"].detach().mean(),
     }
 
 

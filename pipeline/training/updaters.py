@@ -3,11 +3,14 @@
 Gradients are computed only for the parameters a step updates (`backward(inputs=...)`), then
 averaged across processes by `reduce_grads` (Accelerate's all-reduce in multi-process runs, a
 no-op otherwise), clipped, and applied.
+
+Metrics stay on the device as 0-d tensors (the loop sums them there and reads them once per
+validation). The one host read of a half-step is whether its loss, gradient norm and metrics are
+finite: a non-finite one skips the optimizer step, so the model stays intact.
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 import torch
@@ -26,25 +29,34 @@ def no_reduce(params: list[nn.Parameter]) -> None:
 
 def _apply(
     loss: torch.Tensor,
+    metrics: dict[str, torch.Tensor],
     params: list[nn.Parameter],
     optimizer: torch.optim.Optimizer,
     reduce_grads: GradReducer,
     grad_clip: float | None,
-) -> float:
-    """Backprop `loss` into `params` only, reduce, clip, step; return the gradient norm.
+) -> bool:
+    """Backprop `loss` into `params` only, reduce, clip, step; add the gradient norm to
+    `metrics` under "grad_norm"; return whether everything was finite (the one host read).
 
-    A non-finite gradient norm skips the step (the parameters and Adam moments stay as they
-    were) and is returned, so the loop stops on it with the model still intact.
+    A non-finite loss, metric or gradient norm skips the step (the parameters and Adam moments
+    stay as they were), so the loop stops on it with the model still intact.
     """
     optimizer.zero_grad(set_to_none=True)
     loss.backward(inputs=params)
     reduce_grads(params)
-    norm = float(torch.nn.utils.clip_grad_norm_(params, grad_clip if grad_clip else float("inf")))
-    if math.isfinite(norm):
+    norm = torch.nn.utils.clip_grad_norm_(params, grad_clip if grad_clip else float("inf"))
+    metrics["grad_norm"] = norm.detach()
+    finite = bool(torch.stack([v.reshape(()) for v in metrics.values()]).isfinite().all())
+    if finite:
         optimizer.step()
     else:
         optimizer.zero_grad(set_to_none=True)
-    return norm
+    return finite
+
+
+def _renamed(metrics: dict[str, torch.Tensor], norm_name: str) -> dict[str, torch.Tensor]:
+    metrics[norm_name] = metrics.pop("grad_norm")
+    return metrics
 
 
 class EMUpdater:
@@ -69,29 +81,29 @@ class EMUpdater:
         self.grad_clip = grad_clip
         self.reduce_grads = reduce_grads
 
-    def e_step(self, batch: WindowBatch) -> dict[str, float]:
-        """One Adam step on the posterior (phi) minimizing eq. 15."""
+    def e_step(self, batch: WindowBatch) -> tuple[dict[str, torch.Tensor], bool]:
+        """One Adam step on the posterior (phi) minimizing eq. 15; metrics, and whether they
+        were finite (else nothing changed)."""
         loss, metrics = e_step_loss(self.model, batch)
-        if not math.isfinite(metrics["e_loss"]):
-            return metrics  # diverged: change nothing, the loop stops on the non-finite loss
-        metrics["e_grad_norm"] = _apply(
-            loss, self.e_params, self.optimizers["e"], self.reduce_grads, self.grad_clip
+        finite = _apply(
+            loss, metrics, self.e_params, self.optimizers["e"], self.reduce_grads, self.grad_clip
         )
-        return metrics
+        return _renamed(metrics, "e_grad_norm"), finite
 
-    def m_step(self, batch: WindowBatch) -> dict[str, float]:
+    def m_step(self, batch: WindowBatch) -> tuple[dict[str, torch.Tensor], bool]:
         """One Adam step on policy, TAWM and prior (theta, psi, omega) minimizing eq. 16."""
         loss, metrics = m_step_loss(self.model, batch)
-        metrics["m_grad_norm"] = _apply(
-            loss, self.m_params, self.optimizers["m"], self.reduce_grads, self.grad_clip
+        finite = _apply(
+            loss, metrics, self.m_params, self.optimizers["m"], self.reduce_grads, self.grad_clip
         )
-        return metrics
+        return _renamed(metrics, "m_grad_norm"), finite
 
-    def step(self, batch: WindowBatch) -> dict[str, float]:
-        e_metrics = self.e_step(batch)
-        if not all(math.isfinite(v) for v in e_metrics.values()):
+    def step(self, batch: WindowBatch) -> dict[str, torch.Tensor]:
+        """E-step then M-step; metrics as 0-d tensors on the model's device."""
+        e_metrics, finite = self.e_step(batch)
+        if not finite:
             return e_metrics  # diverged: the loop stops; don't push NaNs into theta, psi, omega
-        return e_metrics | self.m_step(batch)
+        return e_metrics | self.m_step(batch)[0]
 
 
 class VIUpdater:
@@ -110,11 +122,10 @@ class VIUpdater:
         self.grad_clip = grad_clip
         self.reduce_grads = reduce_grads
 
-    def step(self, batch: WindowBatch) -> dict[str, float]:
+    def step(self, batch: WindowBatch) -> dict[str, torch.Tensor]:
+        """One joint step; metrics as 0-d tensors on the model's device."""
         loss, metrics = vi_loss(self.model, batch)
-        metrics["grad_norm"] = _apply(
-            loss, self.params, self.optimizers["vi"], self.reduce_grads, self.grad_clip
-        )
+        _apply(loss, metrics, self.params, self.optimizers["vi"], self.reduce_grads, self.grad_clip)
         return metrics
 
 

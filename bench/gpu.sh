@@ -1,0 +1,40 @@
+#!/usr/bin/env bash
+# The GPU checks of issue 16 in one go (< 10 min on one H100/H200): the CUDA tests, then
+# `bench/gpu_table.py` (planning at 1, 64 and 256 environments, eager, compiled + CUDA graphs and
+# the paper's procedure as reference; EM training at the default and the paper's sizes), printed
+# as one table with the issue's targets.
+#
+# Written without a GPU (the session that wrote it had none): nothing here has run on CUDA yet.
+#
+# Where: the device tool's machine (no network; its python3 holds torch 2.11 + CUDA, pytest,
+# typer, safetensors, tqdm, ...). What it lacks travels as wheels in .whl/, fetched here first
+# by `bash bench/gpu_wheels.sh`. Then, from this repo's root:
+#   run(command="bash bench/gpu.sh", timeout_s=600,
+#       carry=[".whl", "data/models/pointmaze-medium", "data/segments/pointmaze-medium"])
+# (the trained default model and its segments: `oposm train` / `oposm segment` first). Results
+# also land in $OUT (gpu.json, tests.log, table.txt) when the device tool sets OUT.
+set -uo pipefail
+cd "$(dirname "$0")/.."
+PY=${PYTHON:-python3}
+OUT=${OUT:-/tmp/oposm-gpu}
+mkdir -p "$OUT"
+if compgen -G ".whl/*.whl" >/dev/null; then
+    "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+        --target /tmp/oposm-site .whl/*.whl || exit 1
+    export PYTHONPATH=/tmp/oposm-site
+fi
+export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1 MUJOCO_GL=egl
+"$PY" -c "import torch, sys; sys.exit(not torch.cuda.is_available())" || {
+    echo "no CUDA GPU visible to $PY"; exit 1; }
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$OUT/gpu.txt"
+
+echo "== CUDA tests"
+timeout 180 "$PY" -m pytest -q -ra -m gpu tests/test_gpu.py 2>&1 | tee "$OUT/tests.log"
+tests=${PIPESTATUS[0]}
+
+echo "== benchmarks"
+timeout 360 "$PY" bench/gpu_table.py --out "$OUT/gpu.json" 2>"$OUT/bench.log" | tee "$OUT/table.txt"
+bench=${PIPESTATUS[0]}
+[ "$bench" -eq 0 ] || tail -20 "$OUT/bench.log"
+echo "tests exit $tests, benchmarks exit $bench"
+exit $(( tests || bench ))

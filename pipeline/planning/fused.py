@@ -1,0 +1,74 @@
+"""The skill prior and the TAWM mean as the planner evaluates them: the same networks as
+`SkillModel.prior` and `SkillModel.tawm` (tests/test_planning.py checks equality), computed with
+fewer, larger and in-place operations, because the planner's rollout is the hot path.
+
+- the prior's mean and std heads share one matrix product for their hidden layers (`[h, 2h]`);
+- the TAWM's std network is skipped (the planner chains means);
+- the TAWM's input `[s, z]` is never concatenated: its first layer is two accumulated products;
+- every ReLU runs in place on the product it follows (no extra allocation).
+
+The weights are gathered once per `PlannerNets` (per plan), so a model that trains on keeps working.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from pipeline.model.networks import GaussianMLP
+from pipeline.model.skill_model import SkillModel
+
+
+def _weights(layer: nn.Linear) -> tuple[torch.Tensor, torch.Tensor]:
+    """`(W^T [in, out], b [out])` of a linear layer (for `torch.addmm(b, x, W^T)`)."""
+    return layer.weight.t(), layer.bias
+
+
+def _relu_layer(x: torch.Tensor, w: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
+    return torch.addmm(w[1], x, w[0]).relu_()
+
+
+class PlannerNets:
+    """`prior(s)` and `tawm_mean(s, z)` on normalized `[N, ...]` rows (see the module docstring)."""
+
+    def __init__(self, model: SkillModel):
+        prior, tawm = model.prior, model.tawm
+        self.sd = model.config.state_dim
+        self.prior_trunk = [_weights(prior.trunk[0]), _weights(prior.trunk[2])]
+        head = prior.head
+        self.prior_hidden = (
+            torch.cat([head.mean[0].weight, head.std[0].weight]).t(),
+            torch.cat([head.mean[0].bias, head.std[0].bias]),
+        )
+        self.prior_mean_out = _weights(head.mean[2])
+        self.prior_std_out = _weights(head.std[2])
+        self.min_std = head.min_std
+        first = tawm.trunk[0]
+        self.tawm_in_s = first.weight[:, : self.sd].t()
+        self.tawm_in_z = first.weight[:, self.sd :].t()
+        self.tawm_in_b = first.bias
+        self.tawm_trunk2 = _weights(tawm.trunk[2])
+        self.tawm_head = [_weights(tawm.head.mean[0]), _weights(tawm.head.mean[2])]
+        self.hidden = head.mean[0].out_features
+        self._check(prior, tawm)
+
+    def _check(self, prior: GaussianMLP, tawm: GaussianMLP) -> None:
+        for net in (prior, tawm):
+            if not (isinstance(net.trunk[1], nn.ReLU) and isinstance(net.head.mean[1], nn.ReLU)):
+                raise ValueError("PlannerNets expects the ReLU networks of appendix C")
+
+    def prior(self, s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Normalized `s [N, sd]` -> prior mean, std `[N, z]`."""
+        h = _relu_layer(_relu_layer(s, self.prior_trunk[0]), self.prior_trunk[1])
+        both = _relu_layer(h, self.prior_hidden)  # [N, 2h]: mean and std hidden layers
+        mean = torch.addmm(self.prior_mean_out[1], both[:, : self.hidden], self.prior_mean_out[0])
+        std_in = torch.addmm(self.prior_std_out[1], both[:, self.hidden :], self.prior_std_out[0])
+        return mean, F.softplus(std_in) + self.min_std
+
+    def tawm_mean(self, s: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """Normalized `s [N, sd]`, skill `z [N, z]` -> the TAWM mean of s_T `[N, sd]`."""
+        h = torch.addmm(torch.addmm(self.tawm_in_b, s, self.tawm_in_s), z, self.tawm_in_z).relu_()
+        h = _relu_layer(h, self.tawm_trunk2)
+        return torch.addmm(self.tawm_head[1][1], _relu_layer(h, self.tawm_head[0]),
+                           self.tawm_head[1][0])  # fmt: skip

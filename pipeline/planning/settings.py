@@ -1,0 +1,34 @@
+"""`deploy.planner` and `deploy.llp` params -> the planners' configs (shared by the deploy stage
+and the planning benchmark, which must not need the stage's recording dependencies)."""
+
+from __future__ import annotations
+
+from pipeline.config import LLPParams, PlannerParams
+from pipeline.planning.cem import CEMConfig
+from pipeline.planning.llp import LLPConfig
+from pipeline.planning.skills import PlannerConfig
+
+
+def planner_config(p: PlannerParams) -> PlannerConfig:
+    """`deploy.planner` params -> the skill planner's config."""
+    return PlannerConfig(
+        horizon=p.horizon,
+        cem=CEMConfig(p.candidates, p.elites, p.iterations, p.min_std, p.stop_cost),
+        init_std=p.init_std,
+        prior_weight=p.prior_weight,
+        warm_start=p.warm_start,
+        compile=p.compile,
+    )
+
+
+def llp_config(p: LLPParams) -> LLPConfig:
+    """`deploy.llp` params -> the low-level planner's config."""
+    return LLPConfig(
+        horizon=p.horizon,
+        execute=p.execute,
+        cem=CEMConfig(p.candidates, p.elites, p.iterations, p.min_std, p.stop_cost),
+        init_std=p.init_std,
+        l2_penalty=p.l2_penalty,
+        plan_from=p.plan_from,
+        warm_start=p.warm_start,
+    )

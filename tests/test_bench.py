@@ -1,0 +1,41 @@
+"""The planning benchmark's reference (the paper's procedure, one environment at a time) and the
+matmul roofline: the reference optimizes the same objective as the batched planner."""
+
+import torch
+
+from bench.reference import ReferencePlanner
+from bench.roofline import matmul_gflops
+from pipeline.model import SkillModel, SkillModelConfig
+from pipeline.model.rollout import rollout_skills
+from pipeline.planning import CEMConfig, GoalCost, PlannerConfig, SkillPlanner, problem_keys
+
+
+def _model() -> SkillModel:
+    torch.manual_seed(0)
+    m = SkillModel(SkillModelConfig(4, 2, z_dim=3, hidden=16))
+    m.set_normalization([0.5, -0.5, 0.0, 0.0], [2.0, 2.0, 1.0, 1.0], [0.0, 0.0], [0.5, 0.5])
+    return m.eval()
+
+
+def test_reference_returns_its_plans_objective_and_matches_the_batched_planner():
+    model = _model()
+    config = PlannerConfig(3, CEMConfig(64, 8, 8), prior_weight=0.5)
+    s0, goals = torch.randn(3, 4), torch.randn(3, 2)
+    reference = ReferencePlanner(model, config)
+    batched = SkillPlanner(model, config).plan(s0, GoalCost(goals), problem_keys([1, 2, 3], "cpu"))
+    for b in range(3):
+        eps, cost = reference.plan_one(s0[b], goals[b], torch.Generator().manual_seed(b))
+        states = rollout_skills(model, s0[b : b + 1], eps=eps[None]).states
+        task = GoalCost(goals[b : b + 1])(states[:, None])[0, 0]
+        assert abs(cost - float(task + 0.5 * eps.pow(2).mean())) < 1e-4
+        # Same objective, other noise: both searches end near the same cost (and improve on
+        # the prior's mean skills).
+        zeros = rollout_skills(model, s0[b : b + 1], eps=torch.zeros(1, 3, 3)).states
+        start = GoalCost(goals[b : b + 1])(zeros[:, None])[0, 0]
+        assert cost <= start + 1e-4 and float(batched.objective[b]) <= start + 1e-4
+        assert abs(cost - float(batched.objective[b])) < 0.1 * max(cost, 0.1)
+    assert len(reference.plan(s0, goals, seed=0)) == 3
+
+
+def test_matmul_roofline_is_measured():
+    assert matmul_gflops(torch.device("cpu"), 64, 64, 64, seconds=0.05) > 0.1
