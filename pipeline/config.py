@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from pipeline.envs.expert import ExpertConfig
 from pipeline.envs.maze import SUPPORTED_ENVS
@@ -196,12 +196,19 @@ class TrainParams(_Section):
     val_windows: int = Field(2000, ge=1, description="Validation windows (a fixed subset).")
     checkpoint_every: int = Field(250, ge=1, description="Steps between resume-state saves.")
     seed: int = Field(0, description="Seed of initialization, sampling and noise.")
-    threads: int | None = Field(
-        1,
-        ge=1,
-        description="Torch CPU threads on CPU (1: never slowed down by a busy core; null: "
-        "torch's default, all cores: faster only on an idle machine).",
+    threads: int | Literal["auto"] | None = Field(
+        "auto",
+        description="Torch CPU threads on CPU. auto: every core if nothing else runs as "
+        "training starts, else 1 (never slowed down by a busy core); null: torch's default.",
     )
+
+    @field_validator("threads")
+    @classmethod
+    def _positive_threads(cls, v: int | str | None) -> int | str | None:
+        if isinstance(v, int) and v < 1:
+            raise ValueError("must be >= 1, auto or null")
+        return v
+
     device: Literal["auto", "cpu", "cuda"] = Field(
         "auto", description="auto: CUDA when available, else CPU."
     )

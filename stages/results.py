@@ -362,8 +362,8 @@ def markdown(results: dict[str, Any]) -> str:
     out = [
         "# The paper's experiments: our numbers beside the paper's",
         "",
-        "Made by `uv run dvc repro experiments/dvc.yaml` (its `results` stage, `oposm results`) "
-        "from the deploy reports of its runs; assembled on "
+        "Made by `oposm results` (the last stage of `uv run dvc repro experiments/dvc.yaml`) "
+        "from the deploy reports of the experiments that have run; assembled on "
         f"{results['assembled_on']}, code at commit {results['code']} (the stages' own code "
         "versions are in experiments/dvc.lock). "
         "Success rates in %, with 95 % Wilson intervals in brackets; differences with Newcombe "
@@ -398,7 +398,9 @@ def markdown(results: dict[str, Any]) -> str:
         "",
         "Success (random goals and corners pooled) with every body's mass and inertia scaled in "
         "the simulator, the models as trained. The paper's rows are antmaze-large with a scaled "
-        "geom density, for the shape of the curves only.",
+        "geom density, for the shape of the curves only. Our expert is the scripted waypoint + "
+        "PD controller that made the data: a feedback controller that knows the maze, unlike "
+        "the paper's learned ant policy, so a heavier point only slows it down.",
         "",
         *_mass_table(results),
         "",

@@ -18,7 +18,7 @@ from pathlib import Path
 import torch
 
 from pipeline.config import Params, TrainParams
-from pipeline.devices import resolve_device, torch_threads
+from pipeline.devices import auto_threads, resolve_device, torch_threads
 from pipeline.errors import UserError
 from pipeline.io import copy_dir, output_lock
 from pipeline.model import SkillModel, SkillModelConfig, save_model
@@ -99,7 +99,7 @@ def run(params: Params, paths: Paths, progress_bar: bool = True) -> Progress:
         if accelerator.is_main_process:  # one writer per model folder
             stack.enter_context(output_lock(paths.model(name)))
         if accelerator.device.type == "cpu":
-            stack.enter_context(torch_threads(cfg.threads))
+            stack.enter_context(torch_threads(auto_threads(cfg.threads)))
         return _train(params, paths, segments, segments_dir, accelerator, progress_bar)
 
 

@@ -101,3 +101,17 @@ def test_paper_params_hold_the_papers_tables():
     paper = load_params(ROOT / "params-paper.yaml")
     assert (paper.train.z_dim, paper.train.hidden, paper.train.batch_size) == (256, 256, 100)
     assert paper.train.lr_e == paper.train.lr_m == 5e-5 and paper.segment.window == 40
+
+
+def test_auto_threads_use_every_core_only_on_an_idle_machine(monkeypatch):
+    """train.threads: auto -> all cores when nothing else is runnable, else one thread."""
+    import os
+
+    from pipeline import devices
+
+    assert isinstance(devices.runnable_others(samples=2, interval_s=0.0), int)  # Linux
+    monkeypatch.setattr(devices, "runnable_others", lambda: 0)
+    assert devices.auto_threads("auto") == (os.cpu_count() or 1)
+    monkeypatch.setattr(devices, "runnable_others", lambda: 2)
+    assert devices.auto_threads("auto") == 1
+    assert devices.auto_threads(3) == 3 and devices.auto_threads(None) is None
