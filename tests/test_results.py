@@ -132,7 +132,14 @@ def test_dvc_reads_the_experiments_pipeline():
     out = subprocess.run(command, cwd=ROOT, capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
     names = {line.split()[0].split(":")[1] for line in out.stdout.splitlines() if line.strip()}
-    assert {"train@large", "deploy@umaze", "mass@x0_2", "mass@x5", "em_vi_train@data1-vi-2", "results"} <= names
+    assert {
+        "train@large",
+        "deploy@umaze",
+        "mass@x0_2",
+        "mass@x5",
+        "em_vi_train@data1-vi-2",
+        "results",
+    } <= names
 
 
 def test_em_vi_verdicts_need_every_seed_on_one_side(tmp_path):
