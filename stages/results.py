@@ -3,9 +3,10 @@ beside the paper's numbers, one verdict per claim.
 
 Reads the deploy reports the experiments pipeline wrote (`<root>/runs/experiments/` per maze,
 `<root>/runs/mass-<factor>/` per mass factor; the roots are in `experiments/params.yaml`) and
-writes `results/experiments.md` (the report), `results/experiments.json` (the same numbers, and
-the metrics DVC shows) and the CSVs behind `dvc plots show experiments/dvc.yaml`. An experiment
-whose reports are missing is reported as not run.
+writes `results/experiments.md` (the report), `results/experiments.json` (the same numbers),
+`results/metrics.json` (a few headline numbers: what `dvc metrics show` lists) and the CSVs
+behind `dvc plots show experiments/dvc.yaml`. An experiment whose reports are missing is reported
+as not run.
 
 Verdicts compare success rates with 95 % intervals: a difference between two agents holds when its
 Newcombe interval excludes 0 in the claimed direction, does not hold when it excludes 0 the other
@@ -438,6 +439,20 @@ def plot_rows(results: dict[str, Any]) -> dict[str, list[dict[str, Any]]]:
     return {"mass.csv": mass_rows, "mazes.csv": maze_rows}
 
 
+def headline(results: dict[str, Any]) -> dict[str, Any]:
+    """The few numbers `dvc metrics show` lists: verdict counts, OPOSM's random-goal success per
+    maze that ran, and the mass sweep's pooled success off the nominal mass per agent."""
+    verdicts = [c["verdict"] for c in results["claims"]]
+    out: dict[str, Any] = {"claims": len(verdicts), "holding": verdicts.count("holds")}
+    for maze, m in results["mazes"].items():
+        oposm = m["agents"].get("oposm", {}).get("random_goal")
+        if oposm is not None:
+            out[f"{maze}_oposm_random_goal"] = round(oposm["success"]["rate"], 4)
+    for agent, r in results["mass"]["perturbed_pooled"].items():
+        out[f"mass_{agent}"] = round(r["rate"], 4)
+    return out
+
+
 def _write_text(path: Path, text: str) -> None:
     with atomic_path(path) as tmp:
         tmp.write_text(text)
@@ -449,6 +464,7 @@ def run(experiments: Path, repo: Path, out: Path) -> dict[str, Any]:
     out.mkdir(parents=True, exist_ok=True)
     _write_text(out / "experiments.md", markdown(results))
     write_json(out / "experiments.json", results)
+    write_json(out / "metrics.json", headline(results))
     for name, rows in plot_rows(results).items():
         if rows:
             _write_text(out / name, _csv(rows))

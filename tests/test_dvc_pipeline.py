@@ -44,6 +44,7 @@ def _copy_repository(dest: Path) -> None:
             (dest / name).parent.mkdir(parents=True, exist_ok=True)
             shutil.copy2(src, dest / name)
     (dest / "dvc.lock").unlink(missing_ok=True)  # a fresh run, whatever was committed
+    shutil.rmtree(dest / "experiments")  # the main job's workflow only (its outputs: hours)
 
 
 def _set_params(repo: Path, overrides: dict) -> None:
