@@ -110,7 +110,7 @@ def test_run_writes_the_report_json_and_plot_csvs(experiments, tmp_path):
         json.loads((out / "experiments.json").read_text())["mazes"]["medium"]["max_steps"] == 2000
     )
     headline = json.loads((out / "metrics.json").read_text())
-    assert headline["medium_oposm_random_goal"] == 0.995 and headline["mass_expert"] == 0.5
+    assert headline["medium_oposm_random_goal"] == 0.995 and headline["mass_expert"] == 0.25
     mass_csv = (out / "mass.csv").read_text().splitlines()
     assert mass_csv[0] == "mass_factor,oposm,expert" and mass_csv[1].startswith("0.5,0.45,0.3")
     assert (out / "mazes.csv").read_text().splitlines()[1].startswith("medium,0.995,0.9")
