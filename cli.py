@@ -77,6 +77,16 @@ MetricsOption = Annotated[
         show_default=False,
     ),
 ]
+ModelOption = Annotated[
+    Path | None,
+    typer.Option(
+        "--model",
+        help="Skill model folder to read instead of <data>/models/<ingest.name>/, e.g. "
+        "data/models/NAME/by/st_nll_prior (the best checkpoint by another selection criterion, "
+        "see train.select).",
+        show_default=False,
+    ),
+]
 PIPELINE_PARAMS = Path("params.yaml")
 
 
@@ -247,6 +257,7 @@ def _stage_command(
     doc: str,
     announce: str | None = None,
     show: Callable[[Any], str] | None = None,
+    reads_model: bool = False,
 ) -> None:
     """Register `oposm <name>`: load the params (with --set overrides), run `stages.<name>.run`
     on the data root, print `show(result)` if given.
@@ -254,7 +265,21 @@ def _stage_command(
     Args:
         doc: The command's help (first line: the summary in `oposm --help`).
         announce: Logged before the stage starts, for stages that are silent for a while first.
+        reads_model: The stage reads the skill model: it takes `--model`.
     """
+
+    def run_stage(params, set_, data, run, metrics, model=None) -> None:
+        p = _load(params, set_)
+        paths = _paths(params, set_, data, run)
+        if metrics is not None:
+            paths = dataclasses.replace(paths, metrics_root=metrics)
+        if model is not None:
+            paths = dataclasses.replace(paths, model_dir=model)
+        if announce:
+            log.info(announce)
+        result = importlib.import_module(f"stages.{name}").run(p, paths)
+        if show is not None:
+            typer.echo(show(result))
 
     def command(
         params: ParamsOption = PIPELINE_PARAMS,
@@ -263,16 +288,20 @@ def _stage_command(
         run: RunOption = None,
         metrics: MetricsOption = None,
     ) -> None:
-        p = _load(params, set_)
-        paths = _paths(params, set_, data, run)
-        if metrics is not None:
-            paths = dataclasses.replace(paths, metrics_root=metrics)
-        if announce:
-            log.info(announce)
-        result = importlib.import_module(f"stages.{name}").run(p, paths)
-        if show is not None:
-            typer.echo(show(result))
+        run_stage(params, set_, data, run, metrics)
 
+    def command_with_model(
+        params: ParamsOption = PIPELINE_PARAMS,
+        set_: SetOption = None,
+        data: DataOption = None,
+        run: RunOption = None,
+        metrics: MetricsOption = None,
+        model: ModelOption = None,
+    ) -> None:
+        run_stage(params, set_, data, run, metrics, model)
+
+    if reads_model:
+        command = command_with_model
     command.__name__ = command.__qualname__ = name
     app.command(name, help=cleandoc(doc))(_user_errors(command))
 
@@ -344,6 +373,7 @@ _stage_command(
     calibration, wall crossings per horizon), data/reports/validate/*.csv (plots) and
     data/recordings/validate.rrd (open with `rerun`).
     """,
+    reads_model=True,
 )
 _stage_command(
     "deploy",
@@ -360,6 +390,7 @@ _stage_command(
     LLP), data/reports/deploy/episodes.json and data/recordings/deploy/*.rrd (`oposm view`).
     """,
     show=_deploy_summary,
+    reads_model=True,
 )
 
 

@@ -75,11 +75,12 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".tmp-{path.name}.", dir=path.parent)
-    os.fchmod(fd, 0o666 & ~_umask())
     os.close(fd)
     tmp_path = Path(tmp)
     try:
         yield tmp_path
+        # After the writer: some (safetensors' save_file) recreate the file owner-only.
+        os.chmod(tmp_path, 0o666 & ~_umask())
         os.replace(tmp_path, path)
     finally:
         if tmp_path.exists():
@@ -103,6 +104,7 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
     old = _aside(path)
     try:
         yield tmp_path
+        _umask_files(tmp_path)
         if not path.exists():
             os.replace(tmp_path, path)
         elif not _exchange(tmp_path, path):
@@ -113,6 +115,15 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
         recover_dir(path)  # interrupted between the fallback's renames: the old one goes back
         shutil.rmtree(tmp_path, ignore_errors=True)  # after an exchange: the old directory
         shutil.rmtree(old, ignore_errors=True)
+
+
+def _umask_files(directory: Path) -> None:
+    """Give files written in `directory` by libraries that create them owner-only (safetensors'
+    `save_file`: 0600) the permissions `open()` gives under the user's umask."""
+    mode = 0o666 & ~_umask()
+    for file in directory.rglob("*"):
+        if file.is_file() and not file.is_symlink() and file.stat().st_mode & 0o777 == 0o600:
+            os.chmod(file, mode)
 
 
 def write_json(path: str | Path, data: Any) -> None:

@@ -22,11 +22,13 @@ class Paths:
             `metrics/` beside `root` (the repository's `metrics/` for the default `data/`).
         inputs: Another data root to read inputs from when `root` does not hold them (an ad-hoc
             run reads the pipeline's models and segments); None for the pipeline itself.
+        model_dir: The skill model folder to read instead of `models/<name>/` (`--model`).
     """
 
     root: Path = Path("data")
     metrics_root: Path | None = None
     inputs: Path | None = None
+    model_dir: Path | None = None
 
     @classmethod
     def for_run(cls, data: Path, run: str) -> Paths:
@@ -54,8 +56,8 @@ class Paths:
         return self.root / "segments" / name
 
     def model(self, name: str) -> Path:
-        """The checkpoint directory `data/models/<name>/` (the best model)."""
-        return self.root / "models" / name
+        """The checkpoint directory `data/models/<name>/` (the best model), or `model_dir`."""
+        return self.model_dir if self.model_dir is not None else self.root / "models" / name
 
     def dynamics(self, name: str) -> Path:
         """The single-step model `data/models/<name>-dynamics/` (beside the skill model)."""

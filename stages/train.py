@@ -20,21 +20,32 @@ import torch
 from pipeline.config import Params, TrainParams
 from pipeline.devices import auto_threads, resolve_device, torch_threads
 from pipeline.errors import UserError
-from pipeline.io import copy_dir, output_lock
+from pipeline.io import atomic_dir, copy_dir, output_lock
 from pipeline.model import SkillModel, SkillModelConfig, save_model
 from pipeline.model.checkpoint import WEIGHTS_FILE
 from pipeline.paths import Paths
 from pipeline.segments import Segments, load_segments
 from pipeline.training.data import WindowSampler
-from pipeline.training.loop import Budget, Callbacks, Trainer
+from pipeline.training.loop import SELECTION_CRITERIA, Budget, Callbacks, Trainer
 from pipeline.training.state import Progress, load_state, read_progress, save_state
 from pipeline.training.updaters import make_updater
 from stages.report import write_headline
 
 log = logging.getLogger(__name__)
 
+BY_CRITERION = "by"  # models/<name>/by/<criterion>/: the best checkpoint of each criterion
+
 # Params that change how long a run goes, not what it computes: a run may be resumed with new ones.
-_BUDGET_KEYS = {"max_steps", "max_minutes", "eval_every", "checkpoint_every", "device", "threads"}
+# `select` only picks which kept checkpoint is published.
+_BUDGET_KEYS = {
+    "max_steps",
+    "max_minutes",
+    "eval_every",
+    "checkpoint_every",
+    "device",
+    "threads",
+    "select",
+}
 
 
 def model_config(cfg: TrainParams, segments: Segments) -> SkillModelConfig:
@@ -51,6 +62,7 @@ def model_config(cfg: TrainParams, segments: Segments) -> SkillModelConfig:
 def _fingerprint(cfg: TrainParams, segments_dir: Path, world_size: int) -> str:
     """What a resumable state must match: training params (less budget), data, process count."""
     what = {
+        "state_format": 2,  # 2: a best checkpoint per selection criterion (best/<criterion>/)
         "train": cfg.model_dump(exclude=_BUDGET_KEYS),
         "segments": json.loads((segments_dir / "segments.json").read_text()),
         "processes": world_size,
@@ -156,9 +168,11 @@ def _train(
                 live.log_metric(key, value)
             live.make_summary()
 
-    def save_best(p: Progress) -> None:
+    def save_best(criterion: str, p: Progress, metrics: dict[str, float]) -> None:
         if main:
-            save_model(model, best_dir, {**extra, "step": p.step, "val_st_nll": p.best_st_nll})
+            val = {k.removeprefix("val/"): v for k, v in metrics.items() if k.startswith("val/")}
+            meta = {**extra, "step": p.step, "selected_by": criterion, "val": val}
+            save_model(model, best_dir / criterion, meta | {"val_st_nll": val["st_nll"]})
 
     def save_resume(p: Progress) -> None:
         if main:
@@ -187,11 +201,18 @@ def _train(
     run_s = max(time.monotonic() - started, 1e-9)
     if world > 1:
         _check_in_sync(accelerator, model)
+    selected_step, selected_value = progress.best_of(cfg.select)
     if live is not None:
         live.summary |= {
             "steps": progress.step,
-            "best_step": progress.best_step,
-            "best_val_st_nll": progress.best_st_nll,
+            "select": cfg.select,
+            "best_step": selected_step,
+            f"best_val_{cfg.select}": selected_value,
+            **{
+                f"best_step_by_{c}": progress.best_of(c)[0]
+                for c in SELECTION_CRITERIA
+                if c != cfg.select
+            },
             "wall_s": progress.elapsed_s,
             "steps_per_s": (progress.step - start_step) / run_s,
             "windows_per_s": (progress.step - start_step) * cfg.batch_size / run_s,
@@ -199,13 +220,14 @@ def _train(
             "device": str(accelerator.device),
         }
         live.end()
-        _publish(paths, name, best_dir, live_dir, live.summary)
+        _publish(paths, name, cfg.select, best_dir, live_dir, live.summary)
     log.info(
-        "trained %d steps in %.0f s; best val s_T NLL %.3f at step %d -> %s",
+        "trained %d steps in %.0f s; best val %s %.3f at step %d -> %s",
         progress.step,
         progress.elapsed_s,
-        progress.best_st_nll,
-        progress.best_step,
+        cfg.select,
+        selected_value,
+        selected_step,
         paths.model(name),
     )
     return progress
@@ -238,11 +260,18 @@ def _resume(
     return load_state(resume_dir, model, updater.optimizers, generator, fingerprint)
 
 
-def _publish(paths: Paths, name: str, best_dir: Path, live_dir: Path, summary: dict) -> None:
-    """Replace the stage's outputs with the finished run's: model, dvclive reports, headline."""
-    if not (best_dir / WEIGHTS_FILE).exists():
+def _publish(
+    paths: Paths, name: str, select: str, best_dir: Path, live_dir: Path, summary: dict
+) -> None:
+    """Replace the stage's outputs with the finished run's: model (the checkpoint `select`
+    picked, and under `by/<criterion>/` the best of every criterion), dvclive reports,
+    headline."""
+    if not (best_dir / select / WEIGHTS_FILE).exists():
         raise UserError(f"training ended without a validated model in {best_dir}; raise max_steps")
-    copy_dir(best_dir, paths.model(name))
+    with atomic_dir(paths.model(name)) as tmp:
+        shutil.copytree(best_dir / select, tmp, dirs_exist_ok=True)
+        for criterion in SELECTION_CRITERIA:
+            shutil.copytree(best_dir / criterion, tmp / BY_CRITERION / criterion)
     copy_dir(live_dir, paths.live("train"))
     write_headline(paths, "train", summary)
 

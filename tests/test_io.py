@@ -6,6 +6,8 @@ import subprocess
 import sys
 
 import pytest
+import torch
+from safetensors.torch import save_file
 
 from pipeline import io as pio
 from pipeline.errors import UserError
@@ -88,8 +90,15 @@ def test_written_files_and_directories_follow_the_umask(tmp_path):
             tmp.write_bytes(b"1")
         with atomic_dir(tmp_path / "d") as tmp:
             (tmp / "f").write_text("1")
+        # safetensors' save_file creates its file owner-only (0600), in a file or a directory:
+        with atomic_path(tmp_path / "w.safetensors") as tmp:
+            save_file({"w": torch.ones(2)}, tmp)
+        with atomic_dir(tmp_path / "m") as tmp:
+            save_file({"w": torch.ones(2)}, tmp / "model.safetensors")
     finally:
         os.umask(old)
+    assert (tmp_path / "w.safetensors").stat().st_mode & 0o777 == 0o644
+    assert (tmp_path / "m" / "model.safetensors").stat().st_mode & 0o777 == 0o644
     assert (tmp_path / "x.json").stat().st_mode & 0o777 == 0o644
     assert (tmp_path / "y.bin").stat().st_mode & 0o777 == 0o644
     assert (tmp_path / "d").stat().st_mode & 0o777 == 0o755

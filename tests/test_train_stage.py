@@ -50,16 +50,32 @@ def _scratch(paths: Paths) -> list[Path]:
 
 def test_outputs_hold_the_model_the_logs_and_the_headline_and_no_resume_state(paths):
     _run(paths)
-    assert sorted(p.name for p in paths.model("skills").iterdir()) == [
-        "config.json",
-        "model.safetensors",
-    ]
+    model_dir = paths.model("skills")
+    assert sorted(p.name for p in model_dir.iterdir()) == ["by", "config.json", "model.safetensors"]
+    assert sorted(p.name for p in (model_dir / "by").iterdir()) == ["st_nll", "st_nll_prior"]
     assert json.loads((paths.live("train") / "metrics.json").read_text())["step"] == 20
     headline = json.loads(paths.metrics("train").read_text())
     assert headline["steps"] == 20 and headline["best_step"] in (10, 20)
     assert paths.metrics("train") == paths.root.parent / "metrics" / "train.json"
     (scratch,) = _scratch(paths)
     assert (scratch / "resume" / "state.json").exists()
+
+
+def test_each_criterion_keeps_its_best_and_select_picks_the_published_one(paths):
+    _run(paths, max_steps=40, select="st_nll_prior")
+    model_dir = paths.model("skills")
+    by = {c: model_dir / "by" / c for c in ("st_nll", "st_nll_prior")}
+    meta = {c: json.loads((d / "config.json").read_text()) for c, d in by.items()}
+    for criterion, m in meta.items():
+        assert m["selected_by"] == criterion and m["step"] in (10, 20, 30, 40)
+        assert set(m["val"]) >= {"st_nll", "st_nll_prior", "st_error"}
+    published = json.loads((model_dir / "config.json").read_text())
+    assert published["selected_by"] == "st_nll_prior"
+    assert published["step"] == meta["st_nll_prior"]["step"]
+    top, chosen = _weights(paths), load_file(by["st_nll_prior"] / "model.safetensors")
+    assert all(torch.equal(top[k], chosen[k]) for k in top)
+    headline = json.loads(paths.metrics("train").read_text())
+    assert headline["best_step"] == meta["st_nll_prior"]["step"]
 
 
 def test_a_second_run_of_the_same_params_restores_the_outputs_without_training(paths):

@@ -20,6 +20,7 @@ from pipeline.model import SkillModel, SkillModelConfig
 from pipeline.segments import build_segments, save_segments
 from pipeline.training.data import WindowSampler
 from pipeline.training.loop import Budget, Callbacks, Trainer, evaluate
+from pipeline.training.losses import prior_marginal_nll
 from pipeline.training.state import Progress
 from pipeline.training.updaters import EMUpdater, VIUpdater
 
@@ -75,7 +76,7 @@ def test_vi_step_updates_everything(segments):
     assert all(_changed(before, model.parameters()))
 
 
-def _fit(segments, model, updater, steps, on_best=lambda p: None, eval_every=None):
+def _fit(segments, model, updater, steps, on_best=lambda c, p, m: None, eval_every=None):
     """Train; returns the trainer, its progress and the logged `(step, metrics)` validations."""
     train = WindowSampler(segments, "train", torch.device("cpu"), 0)
     val = WindowSampler(segments, "validation", torch.device("cpu"), 0)
@@ -93,10 +94,10 @@ def _fit(segments, model, updater, steps, on_best=lambda p: None, eval_every=Non
     return trainer, trainer.fit(Progress()), logged
 
 
-def _best_of(logged) -> tuple[int, float]:
-    """Step and value of the lowest logged validation s_T NLL."""
-    step, metrics = min(logged, key=lambda sm: sm[1]["val/st_nll"])
-    return step, metrics["val/st_nll"]
+def _best_of(logged, criterion: str = "st_nll") -> tuple[int, float]:
+    """Step and value of the lowest logged validation metric `criterion` (first on ties)."""
+    step, metrics = min(logged, key=lambda sm: sm[1][f"val/{criterion}"])
+    return step, metrics[f"val/{criterion}"]
 
 
 def test_em_learns_a_world_model_far_better_than_no_model(segments):
@@ -110,7 +111,10 @@ def test_em_learns_a_world_model_far_better_than_no_model(segments):
     # inferred skill must be well under the s_T = s_0 baseline (measured: about 5x under).
     assert last["val/st_error"] < 0.4 * last["val/st_error_no_model"]
     assert last["val/st_nll"] < first["val/st_nll"] and last["val/kl"] > 0
-    assert (progress.best_step, progress.best_st_nll) == _best_of(logged)
+    assert progress.best_of("st_nll") == _best_of(logged)
+    assert progress.best_of("st_nll_prior") == _best_of(logged, "st_nll_prior")
+    # Skills drawn from the trained prior explain the real outcome far better than chance:
+    assert last["val/st_nll_prior"] < first["val/st_nll_prior"] - 1.0
 
 
 class _DegradesAfter:
@@ -135,8 +139,10 @@ def test_best_checkpoint_is_the_lowest_validation_nll_not_the_last(segments):
     model = _model(segments)
     saved = []  # (best_step, model weights) at each save_best call
 
-    def on_best(p):
-        saved.append((p.best_step, {k: v.clone() for k, v in model.state_dict().items()}))
+    def on_best(criterion, p, metrics):
+        if criterion == "st_nll":
+            step = p.best_of(criterion)[0]
+            saved.append((step, {k: v.clone() for k, v in model.state_dict().items()}))
 
     updater = _DegradesAfter(EMUpdater(model, 3e-3, 3e-3), good=100)
     trainer, progress, logged = _fit(segments, model, updater, 200, on_best, eval_every=20)
@@ -144,7 +150,7 @@ def test_best_checkpoint_is_the_lowest_validation_nll_not_the_last(segments):
     assert steps == list(range(20, 201, 20))
     best_step, best_nll = _best_of(logged)
     assert best_step < 200, "the scenario must make the last validation worse than the best"
-    assert (progress.best_step, progress.best_st_nll) == (best_step, best_nll)
+    assert progress.best_of("st_nll") == (best_step, best_nll)
     # save_best is called exactly at each new running minimum, with the weights of that step.
     running, improved = float("inf"), []
     for s, m in logged:
@@ -159,13 +165,14 @@ def test_best_checkpoint_is_the_lowest_validation_nll_not_the_last(segments):
 def test_nan_loss_stops_with_the_step_and_keeps_the_best_checkpoint(segments):
     model = _model(segments)
     saved = []
-    trainer, progress, _ = _fit(segments, model, EMUpdater(model, 1e-3, 1e-3), 5, saved.append)
-    assert len(saved) == 1
+    on_best = lambda criterion, p, metrics: saved.append(criterion)  # noqa: E731
+    trainer, progress, _ = _fit(segments, model, EMUpdater(model, 1e-3, 1e-3), 5, on_best)
+    assert saved == ["st_nll", "st_nll_prior"]
     trainer.train.states[:] = float("nan")
     trainer.budget.max_steps = 10
     with pytest.raises(UserError, match="diverged at step 6"):
         trainer.fit(progress)
-    assert len(saved) == 1  # nothing saved after the NaN
+    assert len(saved) == 2  # nothing saved after the NaN
 
 
 def _project(tmp_path: Path, segments, train_overrides: dict) -> Path:
@@ -276,3 +283,23 @@ def test_validation_metrics_are_finite_and_deterministic(segments):
     idx = val.fixed_subset(100, 0)
     a, b = evaluate(model, val, idx), evaluate(model, val, idx)
     assert a == b and all(np.isfinite(v) for v in a.values())
+
+
+def test_prior_marginal_nll_is_the_monte_carlo_mixture_likelihood(segments):
+    torch.manual_seed(3)
+    model = _model(segments)
+    batch = WindowSampler(segments, "validation", torch.device("cpu"), 0).sample(7)
+    s0, s_t = batch.states[:, 0], batch.states[:, -1]
+    eps = torch.randn(5, model.config.z_dim)
+    got = prior_marginal_nll(model, s0, s_t, eps)
+    prior = model.prior_dist(s0)
+    # The same mixture, one window and one skill at a time:
+    for b in range(7):
+        densities = [
+            model.tawm_dist(s0[b], prior.mean[b] + prior.stddev[b] * e).log_prob(s_t[b]).exp()
+            for e in eps
+        ]
+        assert torch.allclose(got[b], -torch.stack(densities).mean().log(), rtol=1e-4)
+    # One draw repeated K times is that draw's NLL: the estimate does not grow with K.
+    one = prior_marginal_nll(model, s0, s_t, eps[:1])
+    assert torch.allclose(prior_marginal_nll(model, s0, s_t, eps[:1].repeat(4, 1)), one)

@@ -311,6 +311,18 @@ def test_model_from_another_environment_is_a_one_line_error(workdir, tmp_path):
     assert "trained on 'PointMaze_Large-v3'" in _one_line_error(result)
 
 
+def test_model_option_reads_that_folder_instead(workdir, tmp_path):
+    root, common = workdir
+    assert (root / "data/models/tiny/by/st_nll_prior/model.safetensors").exists()
+    other = tmp_path / "other-model"
+    shutil.copytree(root / "data/models/tiny", other)
+    meta = json.loads((other / "config.json").read_text())
+    meta["info"]["env_id"] = "PointMaze_Large-v3"
+    (other / "config.json").write_text(json.dumps(meta))
+    result = runner.invoke(app, ["validate", *common, "--model", str(other)])
+    assert f"the skill model in {other}" in _one_line_error(result)
+
+
 def test_dataset_without_test_split_or_with_bad_states_is_a_one_line_error(workdir, tmp_path):
     root, _ = workdir
     segments = load_segments(root / "data/segments/tiny")

@@ -1,8 +1,10 @@
 """The training loop: budget, periodic validation, best checkpoint, resume state, NaN guard.
 
 Parts come in through the constructor (model, updater, samplers, callbacks), so tests can pass
-small real ones. Update steps return dicts of 0-d tensors; only this loop aggregates them (summed
-on the device in float64, as Python floats were) and reads them back once per validation.
+small real ones. The best checkpoint is kept for each model-selection criterion
+(`SELECTION_CRITERIA`); the stage publishes the one `train.select` names. Update steps return
+dicts of 0-d tensors; only this loop aggregates them (summed on the device in float64, as Python
+floats were) and reads them back once per validation.
 """
 
 from __future__ import annotations
@@ -22,6 +24,12 @@ from pipeline.training.data import WindowSampler
 from pipeline.training.losses import validation_metrics
 from pipeline.training.state import Progress
 from pipeline.training.updaters import EMUpdater, VIUpdater
+
+# Validation metrics a best checkpoint can be chosen by (lower is better):
+# st_nll: s_T NLL under the posterior skill (the skill that explains the window's actions);
+# st_nll_prior: s_T NLL with the skill marginalized over the prior, as a planner draws it.
+SELECTION_CRITERIA = ("st_nll", "st_nll_prior")
+PRIOR_SAMPLES = 64  # Monte Carlo skills per window for st_nll_prior
 
 
 @dataclass
@@ -49,24 +57,30 @@ class Callbacks:
 
     Attributes:
         log: `(step, metrics)` after each validation.
-        save_best: `(progress)` when validation s_T NLL improved.
+        save_best: `(criterion, progress, metrics)` when the validation metric `criterion`
+            (one of `SELECTION_CRITERIA`) reached a new minimum.
         save_state: `(progress)` to write the resume state.
     """
 
     log: Callable[[int, dict[str, float]], None]
-    save_best: Callable[[Progress], None]
+    save_best: Callable[[str, Progress, dict[str, float]], None]
     save_state: Callable[[Progress], None]
 
 
+@torch.no_grad()
 def evaluate(
     model: SkillModel, sampler: WindowSampler, idx: np.ndarray, batch_size: int = 1024
 ) -> dict[str, float]:
-    """Mean validation metrics over the windows at positions `idx` (see `validation_metrics`)."""
+    """Mean validation metrics over the windows at positions `idx` (see `validation_metrics`);
+    `st_nll_prior` with the same `PRIOR_SAMPLES` prior draws at every call (seed 0)."""
     model.eval()
+    z_dim = model.config.z_dim
+    generator = torch.Generator().manual_seed(0)
+    prior_eps = torch.randn(PRIOR_SAMPLES, z_dim, generator=generator).to(sampler.device)
     sums: dict[str, float] = defaultdict(float)
     for start in range(0, len(idx), batch_size):
         chunk = torch.as_tensor(idx[start : start + batch_size])
-        for name, values in validation_metrics(model, sampler.gather(chunk)).items():
+        for name, values in validation_metrics(model, sampler.gather(chunk), prior_eps).items():
             sums[name] += float(values.sum())
     model.train()
     return {f"val/{k}": v / len(idx) for k, v in sums.items()}
@@ -107,10 +121,11 @@ class Trainer:
         metrics |= evaluate(self.model, self.val, self.val_idx)
         metrics["time/elapsed_s"] = progress.elapsed_s  # for error-vs-wall-time plots
         self.callbacks.log(progress.step, metrics)
-        if metrics["val/st_nll"] < progress.best_st_nll:
-            progress.best_st_nll = metrics["val/st_nll"]
-            progress.best_step = progress.step
-            self.callbacks.save_best(progress)
+        for criterion in SELECTION_CRITERIA:
+            value = metrics[f"val/{criterion}"]
+            if value < progress.best_of(criterion)[1]:
+                progress.best[criterion] = {"step": progress.step, "value": value}
+                self.callbacks.save_best(criterion, progress, metrics)
 
     def fit(self, progress: Progress) -> Progress:
         """Train from `progress` (fresh or resumed) until the budget is spent.
@@ -146,7 +161,7 @@ class Trainer:
                 bar.update(1)
                 if progress.step % b.eval_every == 0:
                     self._validate(progress, sums, n)
-                    bar.set_postfix(val_st_nll=f"{progress.best_st_nll:.3f}")
+                    bar.set_postfix(val_st_nll=f"{progress.best_of('st_nll')[1]:.3f}")
                     sums, n = {}, 0
                 if progress.step % b.checkpoint_every == 0:
                     self.callbacks.save_state(progress)

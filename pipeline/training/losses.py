@@ -6,6 +6,8 @@ over the T steps of a window, then averaged over the batch, exactly as in eqs. 1
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch.distributions import Independent, kl_divergence
 
@@ -102,12 +104,32 @@ def vi_loss(model: SkillModel, batch: WindowBatch) -> tuple[torch.Tensor, dict[s
 
 
 @torch.no_grad()
-def validation_metrics(model: SkillModel, batch: WindowBatch) -> dict[str, torch.Tensor]:
+def prior_marginal_nll(
+    model: SkillModel, s0_n: torch.Tensor, s_t_n: torch.Tensor, prior_eps: torch.Tensor
+) -> torch.Tensor:
+    """-log p(s_T | s_0) `[B]` with the skill drawn from the prior: a K-sample Monte Carlo
+    estimate of -log E_{z ~ p_omega(z|s_0)} p_psi(s_T | s_0, z), z = mean + std * eps_k.
+
+    What a planner that picks skills from the prior may expect: low when the real outcome is
+    one the prior's skills predict, not only the one its own inferred skill explains.
+    `prior_eps [K, z]` (fixed draws: every checkpoint is scored on the same skills).
+    """
+    prior = model.prior_dist(s0_n)
+    z = prior.mean + prior.stddev * prior_eps[:, None]  # [K, B, z]
+    s0_k = s0_n.expand(len(prior_eps), *s0_n.shape)
+    log_p = model.tawm_dist(s0_k, z).log_prob(s_t_n)  # [K, B]
+    return math.log(len(prior_eps)) - torch.logsumexp(log_p, dim=0)
+
+
+def validation_metrics(
+    model: SkillModel, batch: WindowBatch, prior_eps: torch.Tensor | None = None
+) -> dict[str, torch.Tensor]:
     """Per-window validation terms `[B]`, with z = the posterior mean (deterministic).
 
     Returns action NLL per step, s_T NLL, KL(q || p_omega), and s_T errors in raw state units:
     the TAWM mean given the posterior skill, given the prior-mean skill, and the no-model
-    baseline that predicts s_T = s_0.
+    baseline that predicts s_T = s_0. With `prior_eps [K, z]`, also `st_nll_prior`, the s_T NLL
+    with the skill marginalized over the prior (`prior_marginal_nll`).
     """
     q = model.posterior_dist(batch.states[:, :-1], batch.actions)
     z = q.mean
@@ -119,7 +141,7 @@ def validation_metrics(model: SkillModel, batch: WindowBatch) -> dict[str, torch
     def raw_error(pred_n: torch.Tensor) -> torch.Tensor:
         return ((pred_n - s_t) * std).norm(dim=-1)
 
-    return {
+    metrics = {
         "action_nll": -policy_log_prob(model, batch, z) / horizon,
         "st_nll": -model.tawm_dist(s0, z).log_prob(s_t),
         "kl": kl_divergence(q, prior),
@@ -127,3 +149,6 @@ def validation_metrics(model: SkillModel, batch: WindowBatch) -> dict[str, torch
         "st_error_prior_mean": raw_error(model.tawm_dist(s0, prior.mean).mean),
         "st_error_no_model": raw_error(s0),
     }
+    if prior_eps is not None:
+        metrics["st_nll_prior"] = prior_marginal_nll(model, s0, s_t, prior_eps)
+    return metrics

@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import logging
 import pickle  # only for its error type: torch.load(weights_only=True) on a bad file
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -28,12 +28,23 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class Progress:
-    """Where training stands."""
+    """Where training stands.
+
+    Attributes:
+        step: Update steps done.
+        elapsed_s: Training wall time over resumed runs.
+        best: Per model-selection criterion (a validation metric, `SELECTION_CRITERIA`), the
+            step and value of its best validation so far: `{"step": int, "value": float}`.
+    """
 
     step: int = 0
-    best_step: int = -1
-    best_st_nll: float = float("inf")
     elapsed_s: float = 0.0
+    best: dict[str, dict[str, float]] = field(default_factory=dict)
+
+    def best_of(self, criterion: str) -> tuple[int, float]:
+        """(step, value) of `criterion`'s best validation; (-1, inf) before the first."""
+        entry = self.best.get(criterion)
+        return (-1, float("inf")) if entry is None else (int(entry["step"]), entry["value"])
 
 
 def save_state(
