@@ -1,6 +1,8 @@
 """Random external pushes (`ingest.disturbance`): in the generated data, in the batched simulator
 of validate and deploy, and recorded with the dataset."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import yaml
@@ -8,6 +10,7 @@ from typer.testing import CliRunner
 
 from cli import app
 from pipeline.envs.batch import BatchSim
+from pipeline.envs.checks import check_maze_dataset
 from pipeline.envs.disturbance import Pushes, draw_force, push_rng
 from pipeline.envs.expert import ExpertConfig
 from pipeline.envs.generate import dataset_info, generate_episodes
@@ -106,3 +109,23 @@ def test_ingest_refuses_pushes_on_imported_data(tmp_path, monkeypatch):
     result = CliRunner().invoke(app, ["ingest"])
     assert result.exit_code != 0 and "ingest.disturbance" in result.output
     assert "Traceback" not in result.output
+
+
+def test_the_dataset_checks_allow_one_push_of_speed_and_no_more():
+    pushed = _generate(PUSH)
+    info = dataset_info(ENV_ID, "d", 3, ExpertConfig(), 2, 300, disturbance=PUSH)
+    plain_info = dataset_info(ENV_ID, "d", 3, ExpertConfig(), 2, 300, disturbance=Pushes())
+    assert check_maze_dataset(pushed, info).problems == []
+
+    def speed_problems(vx: float, dataset_info) -> list[str]:
+        first = dataclasses.replace(pushed[0], observations=pushed[0].observations.copy())
+        first.observations[100, 2] = vx  # a recorded speed on one axis (m/s)
+        if first.physics is not None:
+            first.physics = first.physics.copy()
+            first.physics[100, 3] = vx
+        report = check_maze_dataset([first, pushed[1]], dataset_info)
+        return [p for p in report.problems if "speed" in p]
+
+    # 5 m/s clip + 1 m/s slack; one push adds impulse / mass = 1 m/s.
+    assert speed_problems(6.5, info) == [] and speed_problems(6.5, plain_info) != []
+    assert speed_problems(7.5, info) != []

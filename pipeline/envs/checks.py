@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.dataset import DatasetInfo, Episode
+from pipeline.envs.disturbance import AGENT_BODY, Pushes
 from pipeline.envs.maze import (
     AGENT_RADIUS,
     MAX_AXIS_SPEED,
@@ -93,6 +94,19 @@ class _Problems:
 
     def lines(self) -> list[str]:
         return [msg if n == 1 else f"{msg} ({n} occurrences)" for msg, n in self._kinds.values()]
+
+
+def _push_speed(info: DatasetInfo) -> float:
+    """Largest velocity change (m/s) one recorded push can add (`Pushes`: impulse / the agent's
+    mass); 0 for a dataset recorded without pushes."""
+    pushes = Pushes.of_dataset(info.generator)
+    if not pushes.active:
+        return 0.0
+    env = make_maze_env(info.env_id, info.env_kwargs.get("maze_map"))
+    try:
+        return pushes.impulse / float(env.unwrapped.model.body_mass[AGENT_BODY])
+    finally:
+        env.close()
 
 
 def _layout_for(info: DatasetInfo) -> dict[str, Any]:
@@ -201,7 +215,9 @@ def check_maze_dataset(
             "maze").
         max_step_distance: Largest allowed |position change| per step (m); default
             2 * sqrt(2) * 5 m/s * control_period: the velocity clip allows at most
-            sqrt(2) * 5.24 m/s, doubled for contact bounces; a reset jumps much further.
+            sqrt(2) * 5.24 m/s, doubled for contact bounces; a reset jumps much further. A
+            dataset recorded with random pushes (`generator["disturbance"]`) gets the velocity
+            change of one push added to the speed in this and in the speed check.
         max_penetration: Largest allowed overlap of the ball (radius 0.1 m) with a wall (m);
             MuJoCo's soft contacts let a 5 m/s ball in by up to ~0.05 m (measured over 1M steps).
         min_goals_per_1000_steps: Lowest acceptable goal-reach rate (the D4RL-like expert reaches
@@ -223,8 +239,9 @@ def check_maze_dataset(
     walls = _Walls(layout if layout is not None else _layout_for(info))
     if continuous is None:
         continuous = info.source == "maze"
+    push_speed = _push_speed(info)
     if max_step_distance is None:
-        max_step_distance = 2.0 * math.sqrt(2.0) * MAX_AXIS_SPEED * dt
+        max_step_distance = 2.0 * math.sqrt(2.0) * (MAX_AXIS_SPEED + push_speed) * dt
     if max_goal_segment is None and info.env_id in SUPPORTED_ENVS:
         max_goal_segment = 2 * SUPPORTED_ENVS[info.env_id]
     prev: Episode | None = None
@@ -238,7 +255,9 @@ def check_maze_dataset(
         if not _check_shapes(ep, info, problems):
             prev = None
             continue
-        _check_values(ep, info, walls, max_step_distance, max_penetration, report, problems)
+        _check_values(
+            ep, info, walls, max_step_distance, push_speed, max_penetration, report, problems
+        )
         if prev is not None:
             _check_boundary(prev, ep, dt, continuous, max_step_distance, report, problems)
         if ep.goal_reached is None or ep.goals is None:
@@ -263,6 +282,7 @@ def _check_values(
     info: DatasetInfo,
     walls: _Walls,
     max_step: float,
+    push_speed: float,
     max_penetration: float,
     report: DatasetReport,
     problems: _Problems,
@@ -307,7 +327,7 @@ def _check_values(
             )
     speed = float(np.abs(ep.observations[:, 2:4]).max())
     report.max_axis_speed = max(report.max_axis_speed, speed)
-    if speed > MAX_AXIS_SPEED + _SPEED_SLACK:
+    if speed > MAX_AXIS_SPEED + _SPEED_SLACK + push_speed:
         problems.add("speed", f"episode {ep.index}: speed {speed:.2f} m/s on one axis")
     outside, in_wall, clearance = walls.measure(pos)
     report.n_outside_bounds += int(outside.sum())
