@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import os
 import platform
 import subprocess
@@ -30,42 +29,17 @@ import yaml
 
 from pipeline.errors import UserError
 from pipeline.evaluation import paper
-from pipeline.evaluation.proportions import difference_interval, wilson_interval
 from pipeline.io import atomic_path, write_json
+from stages.results_common import Report, cell, pct, rate, read, versus
+from stages.results_em_vi import em_vi, em_vi_tables, selection, selection_tables
 
 AGENTS = ("oposm", "llp", "gcbc", "expert")
-Report = dict[str, Any]
-
-
-def _read(path: Path) -> Report | None:
-    try:
-        return json.loads(path.read_text())
-    except FileNotFoundError:
-        return None
-    except json.JSONDecodeError as exc:
-        raise UserError(f"{path}: not valid JSON ({exc.msg}); re-run its stage") from exc
-
-
-def _pct(x: float) -> str:
-    return f"{100 * x:.1f}"
-
-
-def _rate(wins: int, n: int) -> dict[str, Any]:
-    lo, hi = wilson_interval(wins, n)
-    return {"successes": wins, "episodes": n, "rate": wins / n, "ci95": [lo, hi]}
-
-
-def _cell(r: dict[str, Any] | None) -> str:
-    if r is None:
-        return "–"
-    lo, hi = r["ci95"]
-    return f"{_pct(r['rate'])} [{_pct(lo)}, {_pct(hi)}]"
 
 
 def _task(t: dict[str, Any]) -> dict[str, Any]:
-    out = {"success": _rate(t["successes"], t["episodes"])}
+    out = {"success": rate(t["successes"], t["episodes"])}
     for limit, w in t.get("within_steps", {}).items():
-        out[f"within_{limit}"] = _rate(w["successes"], t["episodes"])
+        out[f"within_{limit}"] = rate(w["successes"], t["episodes"])
     return out
 
 
@@ -79,13 +53,6 @@ def _agent_numbers(report: Report) -> dict[str, Any]:
     return out
 
 
-def _versus(a: dict[str, Any], b: dict[str, Any]) -> tuple[str, list[float]]:
-    """Verdict on `a > b` (success dicts of `_rate`) and the interval of the difference."""
-    lo, hi = difference_interval(a["successes"], a["episodes"], b["successes"], b["episodes"])
-    verdict = "holds" if lo > 0 else "does not hold" if hi < 0 else "inconclusive"
-    return verdict, [lo, hi]
-
-
 def _maze_claims(maze: str, numbers: dict[str, Any]) -> list[dict[str, Any]]:
     claims = []
     rg = {a: numbers[a]["random_goal"]["success"] for a in numbers if "random_goal" in numbers[a]}
@@ -93,25 +60,25 @@ def _maze_claims(maze: str, numbers: dict[str, Any]) -> list[dict[str, Any]]:
     if "oposm" in rg and "oposm" in published:
         ours, (theirs, _) = rg["oposm"], published["oposm"]
         n = paper.EPISODES_MAZE2D
-        _, (lo, hi) = _versus(ours, _rate(round(theirs * n), n))
+        _, (lo, hi) = versus(ours, rate(round(theirs * n), n))
         claims.append(
             {
-                "claim": f"OPOSM reaches random goals in maze2d-{maze} (table 4: {_pct(theirs)} %)",
+                "claim": f"OPOSM reaches random goals in maze2d-{maze} (table 4: {pct(theirs)} %)",
                 "verdict": "does not hold" if hi < 0 else "holds",
-                "numbers": f"ours {_cell(ours)} % in 2000 steps; ours - paper's (as {n} "
-                f"episodes) [{_pct(lo)}, {_pct(hi)}] points",
+                "numbers": f"ours {cell(ours)} % in 2000 steps; ours - paper's (as {n} "
+                f"episodes) [{pct(lo)}, {pct(hi)}] points",
             }
         )
     if "oposm" in rg and "llp" in rg:
-        verdict, (lo, hi) = _versus(rg["oposm"], rg["llp"])
+        verdict, (lo, hi) = versus(rg["oposm"], rg["llp"])
         paper_llp = published.get("llp")
-        said = f" (table 4: {_pct(paper_llp[0])} %)" if paper_llp else ""
+        said = f" (table 4: {pct(paper_llp[0])} %)" if paper_llp else ""
         claims.append(
             {
                 "claim": f"OPOSM reaches random goals more often than LLP{said}, {maze}",
                 "verdict": verdict,
-                "numbers": f"OPOSM {_cell(rg['oposm'])} vs LLP {_cell(rg['llp'])} %; difference "
-                f"[{_pct(lo)}, {_pct(hi)}] points",
+                "numbers": f"OPOSM {cell(rg['oposm'])} vs LLP {cell(rg['llp'])} %; difference "
+                f"[{pct(lo)}, {pct(hi)}] points",
             }
         )
     if "oposm" in numbers and "llp" in numbers:
@@ -141,13 +108,13 @@ def _mass(report_of: dict[str, Report | None], factors: dict[str, float]) -> dic
         for agent, r in report["by_agent"].items():
             wins = sum(r[t]["successes"] for t in report["tasks"])
             n = sum(r[t]["episodes"] for t in report["tasks"])
-            table.setdefault(agent, {})[str(factor)] = _rate(wins, n)
+            table.setdefault(agent, {})[str(factor)] = rate(wins, n)
     perturbed = {}
     for agent, by_factor in table.items():
         off = [r for f, r in by_factor.items() if float(f) != 1.0]
         if off:
             wins, n = sum(r["successes"] for r in off), sum(r["episodes"] for r in off)
-            perturbed[agent] = _rate(wins, n)
+            perturbed[agent] = rate(wins, n)
     return {"success": table, "perturbed_pooled": perturbed}
 
 
@@ -156,86 +123,18 @@ def _mass_claims(mass: dict[str, Any]) -> list[dict[str, Any]]:
     claims = []
     for other in ("expert", "gcbc"):
         if "oposm" in pooled and other in pooled:
-            verdict, (lo, hi) = _versus(pooled["oposm"], pooled[other])
+            verdict, (lo, hi) = versus(pooled["oposm"], pooled[other])
             claims.append(
                 {
                     "claim": f"OPOSM stays more successful than {other} when the mass "
                     "changes (fig. 5)",
                     "verdict": verdict,
-                    "numbers": f"pooled over factors != 1: OPOSM {_cell(pooled['oposm'])} vs "
-                    f"{other} {_cell(pooled[other])} %; difference [{_pct(lo)}, {_pct(hi)}] "
+                    "numbers": f"pooled over factors != 1: OPOSM {cell(pooled['oposm'])} vs "
+                    f"{other} {cell(pooled[other])} %; difference [{pct(lo)}, {pct(hi)}] "
                     "points",
                 }
             )
     return claims
-
-
-def _separated(a: list[float], b: list[float]) -> str:
-    """Verdict on "a > b" from per-seed values: every a above every b holds (for 3 seeds each an
-    exact permutation test at p = 1/20), every a below every b does not hold, else inconclusive."""
-    if min(a) > max(b):
-        return "holds"
-    return "does not hold" if max(a) < min(b) else "inconclusive"
-
-
-def _em_vi_run(root: Path) -> dict[str, Any] | None:
-    validate = _read(root / "reports/validate/report.json")
-    deploy = _read(root / "reports/deploy/report.json")
-    if validate is None or deploy is None:
-        return None
-    first = validate["prior"]["skills_1"]
-    oposm = deploy["by_agent"]["oposm"]
-    wins = sum(oposm[t]["successes"] for t in deploy["tasks"])
-    n = sum(oposm[t]["episodes"] for t in deploy["tasks"])
-    gaps = [g["distance_gap_m"]["mean"] for g in (oposm.get("optimism_gap") or {}).values()]
-    gaps = [g for g in gaps if g is not None]
-    return {
-        "tawm_nll_1": first["tawm_nll"],
-        "tawm_within_1sigma_1": first["tawm_within_1sigma"],
-        "tawm_error_1": first["tawm_error_mean"],
-        "success": _rate(wins, n),
-        "optimism_gap_m": sum(gaps) / len(gaps) if gaps else None,
-    }
-
-
-def _em_vi(exp: dict[str, Any], repo: Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
-    """Per dataset and method, each seed's validate and deploy numbers; claims on pushed data."""
-    cfg = exp.get("em_vi")
-    if not cfg:
-        return {}, []
-    table: dict[str, Any] = {}
-    for dataset in cfg["datasets"]:
-        for method in ("em", "vi"):
-            runs = {}
-            for seed in cfg["seeds"]:
-                run = _em_vi_run(repo / dataset["root"] / f"runs/{method}-seed{seed}")
-                if run is not None:
-                    runs[str(seed)] = run
-            table.setdefault(dataset["tag"], {})[method] = runs
-    claims = []
-    pushed = table.get("pushed", {})
-    em, vi = pushed.get("em", {}), pushed.get("vi", {})
-    if len(em) == len(vi) == len(cfg["seeds"]) >= 3:
-
-        def values(runs: dict, key: str) -> list[float]:
-            return [r[key] for r in runs.values()]
-
-        checks = [
-            ("VI's TAWM is overconfident: fewer real outcomes within 1 sigma than EM's",
-             _separated(values(em, "tawm_within_1sigma_1"), values(vi, "tawm_within_1sigma_1")),
-             "tawm_within_1sigma_1"),
-            ("VI's plans are more optimistic than EM's (optimism gap)",
-             _separated(values(vi, "optimism_gap_m"), values(em, "optimism_gap_m")),
-             "optimism_gap_m"),
-        ]  # fmt: skip
-        for claim, verdict, key in checks:
-            claims.append({
-                "claim": f"On the pushed maze, {claim} (§2.1, table 3)",
-                "verdict": verdict,
-                "numbers": f"per seed EM {[round(v, 3) for v in values(em, key)]}, "
-                f"VI {[round(v, 3) for v in values(vi, key)]}",
-            })  # fmt: skip
-    return table, claims
 
 
 _CODE = ("*.py", "pyproject.toml", "uv.lock")  # what DVC runs do not rewrite (locks, metrics)
@@ -269,7 +168,7 @@ def collect(experiments: Path, repo: Path) -> dict[str, Any]:
         raise UserError(f"{experiments}: not found; run from the repository root") from exc
     results: dict[str, Any] = {"mazes": {}, "claims": [], "not_run": []}
     for maze, root in exp["deploy"]["roots"].items():
-        report = _read(repo / root / "runs/experiments/reports/deploy/report.json")
+        report = read(repo / root / "runs/experiments/reports/deploy/report.json")
         if report is None:
             results["not_run"].append(f"maze sizes: {maze}")
             continue
@@ -285,16 +184,25 @@ def collect(experiments: Path, repo: Path) -> dict[str, Any]:
         results["claims"] += _maze_claims(maze, numbers)
     mass_cfg = exp["mass"]
     runs = repo / mass_cfg["root"] / "runs"
-    reports = {k: _read(runs / f"mass-{k}/reports/deploy/report.json") for k in mass_cfg["factors"]}
+    reports = {k: read(runs / f"mass-{k}/reports/deploy/report.json") for k in mass_cfg["factors"]}
     results["not_run"] += [f"mass: {k}" for k, r in reports.items() if r is None]
     results["mass"] = {"maze": mass_cfg["maze"], **_mass(reports, mass_cfg["factors"])}
     results["claims"] += _mass_claims(results["mass"])
-    results["em_vi"], em_vi_claims = _em_vi(exp, repo)
+    results["em_vi"], em_vi_claims, runs_done = em_vi(exp, repo)
     results["claims"] += em_vi_claims
-    runs_done = sum(len(m) for d in results["em_vi"].values() for m in d.values())
-    if not em_vi_claims:
-        results["not_run"].append(f"EM vs naive VI (table 3): {runs_done} of its runs exist")
-    results["not_run"].append("model selection (posterior vs prior NLL)")
+    cfg = exp.get("em_vi") or {}
+    runs_planned = len(cfg.get("datasets", [])) * 2 * len(cfg.get("seeds", []))
+    if runs_done < runs_planned:
+        results["not_run"].append(
+            f"EM vs naive VI (table 3): {runs_done} of its {runs_planned} runs have finished"
+        )
+    results["selection"], selection_claims = selection(exp, repo)
+    results["claims"] += selection_claims
+    selected = sum(len(seeds) for seeds in results["selection"].values())
+    if selected < runs_planned // 2:
+        results["not_run"].append(
+            f"model selection: {selected} of its {runs_planned // 2} deploys have finished"
+        )
     results["assembled_on"] = f"{platform.platform()}, {os.cpu_count()} CPUs"
     results["code"] = _code_version(repo)
     return results
@@ -313,10 +221,10 @@ def _maze_table(results: dict[str, Any]) -> list[str]:
                 if t is None:
                     continue
                 published = paper.TABLE4.get(maze, {}).get(agent) if task == "random_goal" else None
-                said = f"{_pct(published[0])} ± {_pct(published[1])}" if published else "–"
-                within = _cell(t.get(f"within_{limit}")) + f" ({limit})" if limit else "–"
+                said = f"{pct(published[0])} ± {pct(published[1])}" if published else "–"
+                within = cell(t.get(f"within_{limit}")) + f" ({limit})" if limit else "–"
                 lines.append(
-                    f"| {maze} | {task} | {agent} | {_cell(t['success'])} | {within} | {said} |"
+                    f"| {maze} | {task} | {agent} | {cell(t['success'])} | {within} | {said} |"
                 )
     return lines
 
@@ -332,30 +240,13 @@ def _mass_table(results: dict[str, Any]) -> list[str]:
     ]
     for agent in AGENTS:
         if agent in table:
-            cells = [_cell(table[agent].get(f)) for f in factors]
+            cells = [cell(table[agent].get(f)) for f in factors]
             lines.append(f"| {agent} (ours) | " + " | ".join(cells) + " |")
     for agent, series in paper.FIGURE5.items():
         by = dict(zip(paper.FIGURE5_FACTORS, series, strict=True))
-        cells = [_pct(by[float(f)]) if float(f) in by else "–" for f in factors]
+        cells = [pct(by[float(f)]) if float(f) in by else "–" for f in factors]
         lines.append(f"| {agent} (paper, antmaze-large) | " + " | ".join(cells) + " |")
     return lines
-
-
-def _em_vi_table(results: dict[str, Any]) -> list[str]:
-    rows = [
-        "| data | method | seed | NLL, 1 skill | within 1 sigma | error (m) | success | gap (m) |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for tag, methods in results["em_vi"].items():
-        for method, runs in methods.items():
-            for seed, r in runs.items():
-                gap = r["optimism_gap_m"]
-                rows.append(
-                    f"| {tag} | {method} | {seed} | {r['tawm_nll_1']:.3f} | "
-                    f"{_pct(r['tawm_within_1sigma_1'])} | {r['tawm_error_1']:.3f} | "
-                    f"{_cell(r['success'])} | {'–' if gap is None else f'{gap:+.3f}'} |"
-                )
-    return rows if len(rows) > 2 else ["Not run yet."]
 
 
 def markdown(results: dict[str, Any]) -> str:
@@ -393,7 +284,7 @@ def markdown(results: dict[str, Any]) -> str:
         "mean position error), OPOSM's deploy success and its optimism gap (real minus "
         "predicted distance to the goal where each plan's first skill ends).",
         "",
-        *_em_vi_table(results),
+        *em_vi_tables(results["em_vi"]),
         "",
         f"## 3. Robustness to mass (paper figure 5), {results['mass']['maze']} maze",
         "",
@@ -407,8 +298,13 @@ def markdown(results: dict[str, Any]) -> str:
         "",
         "## 4. Model selection",
         "",
-        "Not run yet: best checkpoint by posterior s_T NLL (today) vs by prior-skill open-loop "
-        "error.",
+        "Each EM run of experiment 2 keeps two best checkpoints: by the validation s_T NLL "
+        "under the posterior skill (`train.select: st_nll`, the default, deployed above) and by "
+        "the s_T NLL with the skill drawn from the prior, 64 draws (`st_nll_prior`: what a "
+        "planner drawing skills from the prior may expect). OPOSM deployed with each on the "
+        "same episodes:",
+        "",
+        *selection_tables(results["selection"]),
         "",
     ]
     if results["not_run"]:

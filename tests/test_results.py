@@ -53,6 +53,7 @@ def experiments(tmp_path):
     params = {
         "deploy": {"roots": {"medium": "data", "large": "data/experiments/mazes/large"}},
         "mass": {"maze": "medium", "root": "data", "factors": {"x0.5": 0.5, "x1": 1.0, "x2": 2.0}},
+        "em_vi": {"datasets": [{"root": "data", "tag": "plain"}], "seeds": [0, 1, 2]},
     }
     (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
     data = tmp_path / "data"
@@ -92,7 +93,8 @@ def test_verdicts_follow_the_intervals_and_missing_runs_are_named(experiments):
     assert mass["verdict"] == "holds"  # 175/400 vs 100/400 off the nominal mass
     assert results["mass"]["perturbed_pooled"]["oposm"]["successes"] == 2 * (90 + 85)
     assert "maze sizes: large" in results["not_run"]
-    assert "EM vs naive VI (table 3): 0 of its runs exist" in results["not_run"]
+    assert "EM vs naive VI (table 3): 0 of its 6 runs have finished" in results["not_run"]
+    assert "model selection: 0 of its 3 deploys have finished" in results["not_run"]
     medium = results["mazes"]["medium"]["agents"]["oposm"]["random_goal"]
     assert medium["within_600"]["successes"] == 197
 
@@ -173,3 +175,49 @@ def test_em_vi_verdicts_need_every_seed_on_one_side(tmp_path):
     assert verdicts["VI's plans are more optimistic than EM's"] == "inconclusive"
     assert results["em_vi"]["pushed"]["vi"]["2"]["success"]["successes"] == 170
     assert "| pushed | vi | 0 | -0.100 | 41.0 |" in markdown(results)
+
+
+def test_selection_compares_the_two_checkpoints_on_the_same_episodes(tmp_path):
+    """Three EM seeds: the prior-NLL checkpoints win 3 x 195 / 400 against 3 x 150 / 400 (both
+    tasks pooled) -> holds; the table names the step each criterion picked."""
+    params = {
+        "deploy": {"roots": {}},
+        "mass": {"maze": "medium", "root": "data", "factors": {}},
+        "em_vi": {"datasets": [{"root": "data", "tag": "plain"}], "seeds": [0, 1, 2]},
+    }
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
+    runs = tmp_path / "data/runs"
+    for seed in range(3):
+        _write(runs / f"em-seed{seed}/reports/deploy", _report({"oposm": _agent(75, 75, 0.1)}))
+        _write(
+            runs / f"em-seed{seed}-by-prior/reports/deploy",
+            _report({"oposm": _agent(100, 95, 0.1)}),
+        )
+        by = runs / f"em-seed{seed}/models/pointmaze-medium/by"
+        for criterion, step in (("st_nll", 5000), ("st_nll_prior", 3000 + seed)):
+            (by / criterion).mkdir(parents=True)
+            (by / criterion / "config.json").write_text(json.dumps({"step": step}))
+    results = collect(tmp_path / "params.yaml", tmp_path)
+    (claim,) = [c for c in results["claims"] if "prior-marginal" in c["claim"]]
+    assert claim["verdict"] == "holds" and "0 of 3 seeds picked the same step" in claim["numbers"]
+    assert results["selection"]["plain"]["2"]["step_by_st_nll_prior"] == 3002
+    table = markdown(results)
+    assert "| plain | 2 | 5000 | 37.5 [32.9, 42.3] | 3002 | 48.8 [43.9, 53.6] |" in table
+    assert not any("model selection" in x for x in results["not_run"])
+
+
+def test_the_results_stage_depends_on_every_em_vi_and_selection_run():
+    """DVC lists cannot loop: the results stage names each run's reports by hand."""
+    stage = yaml.safe_load((ROOT / "experiments/dvc.yaml").read_text())["stages"]["results"]
+    cfg = yaml.safe_load((ROOT / "experiments/params.yaml").read_text())["em_vi"]
+    expected = set()
+    for dataset in cfg["datasets"]:
+        runs = f"{dataset['root']}/runs"
+        for seed in cfg["seeds"]:
+            for method in ("em", "vi"):
+                expected |= {
+                    f"{runs}/{method}-seed{seed}/reports/{r}" for r in ("validate", "deploy")
+                }
+            expected.add(f"{runs}/em-seed{seed}/models/pointmaze-medium")
+            expected.add(f"{runs}/em-seed{seed}-by-prior/reports/deploy")
+    assert expected <= set(stage["deps"])
