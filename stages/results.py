@@ -32,6 +32,7 @@ from pipeline.evaluation import paper
 from pipeline.io import atomic_path, write_json
 from stages.results_common import Report, cell, pct, rate, read, versus
 from stages.results_em_vi import em_vi, em_vi_tables, selection, selection_tables
+from stages.results_em_vi import plot_rows as em_vi_plot_rows
 
 AGENTS = ("oposm", "llp", "gcbc", "expert")
 
@@ -321,7 +322,8 @@ def _csv(rows: list[dict[str, Any]]) -> str:
 
 
 def plot_rows(results: dict[str, Any]) -> dict[str, list[dict[str, Any]]]:
-    """The CSVs of experiments/dvc.yaml's plots: success vs mass factor, success per maze."""
+    """The CSVs of experiments/dvc.yaml's plots: success vs mass factor, success per maze, and
+    experiment 2's error vs horizon and optimism gap."""
     mass = results["mass"]["success"]
     factors = sorted({f for by in mass.values() for f in by}, key=float)
     mass_rows = [
@@ -332,7 +334,7 @@ def plot_rows(results: dict[str, Any]) -> dict[str, list[dict[str, Any]]]:
         {"maze": maze, **{a: m["agents"][a]["random_goal"]["success"]["rate"] for a in m["agents"]}}
         for maze, m in results["mazes"].items()
     ]
-    return {"mass.csv": mass_rows, "mazes.csv": maze_rows}
+    return {"mass.csv": mass_rows, "mazes.csv": maze_rows, **em_vi_plot_rows(results["em_vi"])}
 
 
 def headline(results: dict[str, Any]) -> dict[str, Any]:

@@ -36,8 +36,11 @@ def _run(root: Path) -> dict[str, Any] | None:
     deploy = read(root / "reports/deploy/report.json")
     if validate is None or deploy is None:
         return None
-    first = validate["prior"]["skills_1"]
+    prior = validate["prior"]
+    first = prior["skills_1"]
+    horizons = sorted(prior, key=lambda k: int(k.removeprefix("skills_")))
     return {
+        "tawm_error_by_skills": [prior[k]["tawm_error_mean"] for k in horizons],
         "tawm_nll_1": first["tawm_nll"],
         "tawm_within_1sigma_1": first["tawm_within_1sigma"],
         "tawm_error_1": first["tawm_error_mean"],
@@ -205,3 +208,30 @@ def selection_tables(table: dict[str, Any]) -> list[str]:
                 f"| {r['step_by_st_nll_prior']} | {cell(r['by_st_nll_prior']['success'])} |"
             )
     return rows if len(rows) > 2 else ["Not run yet."]
+
+
+def _mean(values: list[float]) -> float | None:
+    return sum(values) / len(values) if values else None
+
+
+def plot_rows(table: dict[str, Any]) -> dict[str, list[dict[str, Any]]]:
+    """CSVs of the plots: TAWM error vs horizon (k prior skills) per dataset and method, mean
+    over seeds; the optimism gap per dataset and method, mean over seeds."""
+    columns: dict[str, list[list[float]]] = {}
+    gaps = []
+    for tag, methods in table.items():
+        for method, runs in methods.items():
+            if not runs:
+                continue
+            columns[f"{tag}_{method}"] = [r["tawm_error_by_skills"] for r in runs.values()]
+            gap = _mean(_values(runs, "optimism_gap_m"))
+            if gap is not None:
+                gaps.append({"run": f"{tag} {method}", "optimism_gap_m": round(gap, 4)})
+    depth = min((len(e) for runs in columns.values() for e in runs), default=0)
+    error_rows = []
+    for k in range(depth):
+        row: dict[str, Any] = {"skills": k + 1}
+        for column, runs in columns.items():
+            row[column] = round(sum(e[k] for e in runs) / len(runs), 4)
+        error_rows.append(row)
+    return {"em_vi_error.csv": error_rows, "optimism_gap.csv": gaps}

@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 
 from cli import app
 from pipeline.evaluation.proportions import difference_interval, wilson_interval
-from stages.results import collect, markdown, run
+from stages.results import collect, markdown, plot_rows, run
 
 ROOT = Path(__file__).resolve().parents[1]
 runner = CliRunner()
@@ -162,7 +162,12 @@ def test_em_vi_verdicts_need_every_seed_on_one_side(tmp_path):
         for seed in range(3):
             run = tmp_path / f"pushed/runs/{method}-seed{seed}/reports"
             first = {"tawm_nll": -0.1, "tawm_within_1sigma": within[method][seed]}
-            _write(run / "validate", {"prior": {"skills_1": first | {"tawm_error_mean": 0.3}}})
+            errors = {"em": (0.3, 0.5), "vi": (0.4, 0.8 + 0.3 * seed)}[method]
+            prior = {
+                "skills_2": first | {"tawm_error_mean": errors[1]},  # order of keys not relied on
+                "skills_1": first | {"tawm_error_mean": errors[0]},
+            }
+            _write(run / "validate", {"prior": prior})
             agent = _agent(90, 80, 0.1) | {
                 "optimism_gap": {"random_goal": {"distance_gap_m": {"mean": gaps[method][seed]}}}
             }
@@ -175,6 +180,15 @@ def test_em_vi_verdicts_need_every_seed_on_one_side(tmp_path):
     assert verdicts["VI's plans are more optimistic than EM's"] == "inconclusive"
     assert results["em_vi"]["pushed"]["vi"]["2"]["success"]["successes"] == 170
     assert "| pushed | vi | 0 | -0.100 | 41.0 |" in markdown(results)
+    rows = plot_rows(results)
+    assert rows["em_vi_error.csv"] == [
+        {"skills": 1, "pushed_em": 0.3, "pushed_vi": 0.4},
+        {"skills": 2, "pushed_em": 0.5, "pushed_vi": 1.1},
+    ]
+    assert rows["optimism_gap.csv"] == [
+        {"run": "pushed em", "optimism_gap_m": 0.1167},
+        {"run": "pushed vi", "optimism_gap_m": 0.1767},
+    ]
 
 
 def test_selection_compares_the_two_checkpoints_on_the_same_episodes(tmp_path):
