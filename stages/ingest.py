@@ -58,11 +58,12 @@ def _source(params: Params, progress: bool) -> tuple[DatasetInfo, Iterator[Episo
     return imported.info, imported.episodes
 
 
-def _check(path: Path, info: DatasetInfo) -> DatasetReport | None:
+def _check(path: Path, info: DatasetInfo, max_fallen_share: float) -> DatasetReport | None:
     """Maze checks of the written file: all of them for the built-in expert, OGBench's own for
-    OGBench data (`check_ogbench_dataset`); for another import, only
-    when its env is a PointMaze we simulate (walls, bounds, jumps, physics, clock; episodes are
-    not assumed continuous and someone else's demonstrator is not judged on its goal rate)."""
+    OGBench data (`check_ogbench_dataset`; ant falls up to `max_fallen_share` of the steps); for
+    another import, only when its env is a PointMaze we simulate (walls, bounds, jumps, physics,
+    clock; episodes are not assumed continuous and someone else's demonstrator is not judged on
+    its goal rate)."""
     from pipeline.sources import is_simulated_maze
 
     if info.source == "maze":
@@ -70,7 +71,7 @@ def _check(path: Path, info: DatasetInfo) -> DatasetReport | None:
     if info.source == "ogbench":
         from pipeline.sources.ogbench import check_ogbench_dataset
 
-        return check_ogbench_dataset(iter_episodes(path), info)
+        return check_ogbench_dataset(iter_episodes(path), info, max_fallen_share)
     if not is_simulated_maze(info):
         log.info("no maze checks: %s is not in a PointMaze we simulate", info.name)
         return None
@@ -104,7 +105,7 @@ def run(params: Params, paths: Paths, progress: bool = True) -> dict[str, float]
     with atomic_path(dest) as tmp:
         written = write_dataset(tmp, info, episodes)
         generated = time.perf_counter() - start
-        report = _check(tmp, info)
+        report = _check(tmp, info, cfg.ogbench.max_fallen_share)
         if report is not None:
             raise_for_problems(report, name=str(dest))
     elapsed = time.perf_counter() - start

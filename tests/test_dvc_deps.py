@@ -92,6 +92,7 @@ REEXPORTING = {
     "pipeline/planning/__init__.py",
     "pipeline/recording/__init__.py",
     "pipeline/sources/__init__.py",
+    "pipeline/sources/ogbench/__init__.py",  # keeps `from pipeline.sources.ogbench import ...`
 }
 
 

@@ -299,8 +299,8 @@ def test_bad_npz_inputs_are_one_line_errors(generated, tmp_path) -> None:
     assert "not a numpy .npz" in _one_line(lambda: read_ogbench(tmp_path / "text.npz", "x", POINT))
     assert "not found" in _one_line(lambda: read_ogbench(tmp_path / "nope.npz", "x", POINT))
     assert "dataset type" in _one_line(lambda: make_recipe(POINT, "path", 1, 10, 0))
-    ant = make_recipe("antmaze-medium-v0", "navigate", 1, 10, 0)
-    assert "issue 19" in _one_line(lambda: generate_ogbench(ant, "a"))
+    message = _one_line(lambda: make_recipe("antmaze-medium-v0", "navigate", 1, 10, 0))
+    assert "ingest.ogbench.expert" in message
 
 
 def test_cli_ingest_ogbench_import_and_a_bad_file_leaves_nothing(generated, tmp_path) -> None:
@@ -381,7 +381,9 @@ def test_an_ant_maze_npz_imports_with_its_physics(tmp_path) -> None:
     episodes = list(data.episodes)
     assert data.info.env_id == "antmaze-medium-v0" and data.info.state_dim == 29
     assert data.info.physics_dim == 30 and [len(e) for e in episodes] == [30, 30]
-    assert check_ogbench_dataset(episodes, data.info).problems == []
+    # random torques flip the ant within ~15 steps: no demonstrator, so its falls are accepted
+    report = check_ogbench_dataset(episodes, data.info, max_fallen_share=1.0)
+    assert report.problems == [] and report.fallen_episodes >= 1
     sim = BatchSim(make_env_spec("antmaze-medium-v0"), 29)
     sim.set_state(episodes[0].physics[:-1])
     sim.step(episodes[0].actions[:-1])

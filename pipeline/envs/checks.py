@@ -36,7 +36,7 @@ _PHYSICS_ATOL = 1e-5
 
 @dataclass
 class DatasetReport:
-    """What `check_maze_dataset` measured, and the problems it found."""
+    """What `check_maze_dataset` (or `check_ogbench_dataset`) measured, and the problems found."""
 
     n_episodes: int = 0
     """Episodes seen."""
@@ -62,6 +62,16 @@ class DatasetReport:
     """States whose ball centre lies inside a wall cell."""
     n_nonfinite: int = 0
     """Steps with a NaN or infinite value in any array."""
+    episodes_reaching_goal: int | None = None
+    """OGBench data: episodes in which a goal was reached at least once."""
+    fallen_steps: int | None = None
+    """Ant data: steps with the torso outside the healthy height range or upside down."""
+    fallen_episodes: int | None = None
+    """Ant data: episodes with at least one fallen step."""
+    min_torso_height: float | None = None
+    """Ant data: lowest torso height (m)."""
+    max_velocity_mismatch: float | None = None
+    """Ant data: largest gap between a step's torso move and what its velocities explain (m)."""
     problems: list[str] = field(default_factory=list)
     """One line per kind of problem found (first occurrence and count)."""
 

@@ -86,8 +86,13 @@ def open_ogbench(cfg: IngestParams, progress: bool = False) -> ImportedDataset:
 
     og = cfg.ogbench
     if og.path:
+        if og.expert:
+            raise UserError(
+                "ingest.ogbench.expert generates ant data; importing ingest.ogbench.path does "
+                "not use it: set one of them to null"
+            )
         return read_ogbench(og.path, cfg.name, og.env_id, og.include_val, progress)
     recipe = make_recipe(
-        og.env_id, og.dataset_type, cfg.episodes, cfg.episode_steps, cfg.seed, og.noise
+        og.env_id, og.dataset_type, cfg.episodes, cfg.episode_steps, cfg.seed, og.noise, og.expert
     )
     return generate_ogbench(recipe, cfg.name, progress)
