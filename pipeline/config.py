@@ -277,10 +277,20 @@ class BCParams(PolicyParams):
 
 class GCBCParams(PolicyParams):
     """`oposm gcbc`: goal-conditioned BC p(a | s, g), hindsight goals as OGBench's GCBC (its
-    defaults: 3 x 512 GELU MLP, constant std, lr 3e-4, batch 1024, 1M steps)."""
+    defaults, `impls/agents/gcbc.py`: 3 x 512 GELU MLP on the raw observation and goal, constant
+    std 1, lr 3e-4, batch 1024, 1M steps, the final parameters evaluated)."""
 
     learned_std: bool = Field(
         False, description="Predict the action std; false: fixed at 1 (OGBench: const_std)."
+    )
+    normalize: bool = Field(
+        True,
+        description="Whiten states, goals and actions with the train statistics; false: raw "
+        "units, as OGBench's GCBC (its constant std is then 1 raw action unit).",
+    )
+    keep: Literal["best", "last"] = Field(
+        "best",
+        description="Parameters kept: best validation NLL, or the last step's (OGBench's).",
     )
 
 

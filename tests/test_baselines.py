@@ -25,6 +25,7 @@ from pipeline.planning.llp import LLPConfig, LowLevelMPC, LowLevelPlanner
 from pipeline.planning.noise import problem_keys
 from pipeline.planning.settings import llp_config
 from pipeline.segments import build_segments
+from pipeline.sources.ogbench import generate_ogbench, make_recipe
 from pipeline.training.bc import episode_ends, fit_policy, hindsight_goals
 
 ENV_ID = "PointMaze_Medium-v3"
@@ -80,6 +81,43 @@ def test_a_few_fitting_steps_lower_the_nll_and_the_checkpoint_round_trips(
         load_policy(tmp_path / kind, other)
     with pytest.raises(UserError, match="run `oposm bc` first"):
         load_policy(tmp_path / "missing", "bc")
+
+
+@pytest.fixture(scope="module")
+def ogbench_segments():
+    """6 navigate episodes x 301 steps of OGBench's point-maze recipe, half of them validation."""
+    data = generate_ogbench(make_recipe("pointmaze-medium-v0", "navigate", 6, 301, seed=5), "gen")
+    split = {"train": 0.5, "validation": 0.5, "test": 0.0}
+    return build_segments(list(data.episodes), data.info, 26, 1, split, seed=0)
+
+
+def test_gcbc_as_ogbench_fits_in_raw_units_and_keeps_its_last_parameters(ogbench_segments):
+    """OGBench's GCBC sees raw observations and goals, has std 1 in raw action units and is
+    evaluated with its final parameters (`normalize: false`, `keep: last`)."""
+    cpu = torch.device("cpu")
+    common = dict(hidden=32, batch_size=64, val_transitions=300, lr=1e-2, max_steps=60)
+    best, best_metrics = fit_policy(
+        ogbench_segments, GCBCParams(**common, eval_every=10), cpu, (0, 1)
+    )
+    # This run's best validation NLL is before its end, so keeping the last parameters differs.
+    assert best_metrics["best_step"] < 60 and best_metrics["normalized"]
+    raw = GCBCParams(**common, eval_every=10, normalize=False, keep="last")
+    last, metrics = fit_policy(ogbench_segments, raw, cpu, (0, 1))
+    assert (metrics["best_step"], metrics["kept"], metrics["normalized"]) == (60, "last", False)
+    # The same run validated only at its end (nothing else differs: validation draws no
+    # training randomness) ends with the same parameters.
+    once, _ = fit_policy(ogbench_segments, raw.model_copy(update={"eval_every": 60}), cpu, (0, 1))
+    for (k, a), b in zip(last.state_dict().items(), once.state_dict().values(), strict=True):
+        assert torch.equal(a, b), k
+    for name in ("state_mean", "action_mean"):
+        assert torch.equal(getattr(last, name), torch.zeros_like(getattr(last, name)))
+    for name in ("state_std", "action_std"):
+        assert torch.equal(getattr(last, name), torch.ones_like(getattr(last, name)))
+    s = torch.as_tensor(ogbench_segments.states[:20])
+    mean, std = last.action_stats(s, s)
+    assert torch.equal(std, torch.ones(20, 2))  # const std: 1 raw action unit
+    assert torch.equal(mean, last.net(torch.cat([s, s], -1))[0])  # raw inputs, raw actions
+    assert not torch.equal(best.state_mean, last.state_mean)  # the default whitens
 
 
 @pytest.fixture(scope="module")

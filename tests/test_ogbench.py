@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -35,6 +36,7 @@ from pipeline.sources.ogbench import (
 from pipeline.viz.dataset import write_dataset_view
 
 POINT = "pointmaze-medium-v0"
+ROOT = Path(__file__).resolve().parents[1]
 runner = CliRunner()
 
 
@@ -388,3 +390,16 @@ def test_an_ant_maze_npz_imports_with_its_physics(tmp_path) -> None:
     sim.set_state(episodes[0].physics[:-1])
     sim.step(episodes[0].actions[:-1])
     np.testing.assert_allclose(sim.observe(), episodes[0].observations[1:], atol=1e-9)
+
+
+@pytest.mark.parametrize("size", ["medium", "large", "giant"])
+def test_ogbench_params_run_ogbenchs_gcbc(size) -> None:
+    """`impls/agents/gcbc.py`: 3 x 512 MLP, constant std, lr 3e-4, raw inputs, final parameters;
+    evaluated with its mean action. Only the batch (1024) and the steps (1M) are CPU-sized."""
+    from pipeline.config import load_params
+
+    params = load_params(ROOT / f"params-ogbench-pointmaze-{size}.yaml")
+    gcbc = params.gcbc
+    assert (gcbc.hidden, gcbc.lr, gcbc.learned_std) == (512, 3e-4, False)
+    assert (gcbc.normalize, gcbc.keep) == (False, "last")
+    assert not params.deploy.gcbc.sample_actions

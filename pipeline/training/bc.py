@@ -6,6 +6,8 @@ negative log-likelihood, best validation NLL kept.
   (`actor_p_trajgoal = 1`, `actor_geom_sample = False`): for step t of an episode whose last step
   is N, the goal is the state at a step drawn uniformly from t + 1 .. N (OGBench:
   `round(min(t + 1, N) * d + N * (1 - d))`, d ~ U[0, 1)), reduced to the goal dims (x, y).
+  With `gcbc.normalize: false` it sees raw states, goals and actions, and `gcbc.keep: last` keeps
+  the final parameters, as OGBench's GCBC does (see results/ogbench.md on why it matters).
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from pipeline.config import PolicyParams
+from pipeline.config import GCBCParams, PolicyParams
 from pipeline.errors import UserError
 from pipeline.model.policy import GaussianPolicy, PolicyConfig
 from pipeline.segments import Segments
@@ -76,7 +78,9 @@ def fit_policy(
 
     Adam (`cfg.lr`, `cfg.batch_size` steps drawn uniformly from the train split) for
     `cfg.max_steps`; keeps the parameters with the best validation NLL (every `eval_every` steps
-    and at the end, on a fixed subset of `val_transitions` validation steps with fixed goals).
+    and at the end, on a fixed subset of `val_transitions` validation steps with fixed goals), or
+    the last ones (`GCBCParams.keep`). Inputs and actions are whitened with the train statistics
+    unless `GCBCParams.normalize` is false (then the policy works in raw units, as OGBench's).
 
     Returns:
         The best policy (eval mode) and its metrics: `val_nll`, `val_action_rmse`, `best_step`, ...
@@ -97,9 +101,13 @@ def fit_policy(
         info.state_dim, info.action_dim, goal_dims, cfg.hidden, cfg.min_std, cfg.learned_std
     )
     policy = GaussianPolicy(config)
-    policy.set_normalization(
-        {k: getattr(st, k) for k in ("state_mean", "state_std", "action_mean", "action_std")}
-    )
+    normalize, keep = True, "best"
+    if isinstance(cfg, GCBCParams):
+        normalize, keep = cfg.normalize, cfg.keep
+    if normalize:  # otherwise the buffers stay mean 0, std 1: raw units, saved as such
+        policy.set_normalization(
+            {k: getattr(st, k) for k in ("state_mean", "state_std", "action_mean", "action_std")}
+        )
     policy.to(device)
     data = _Batches(segments, goal_dims, device)
     val = data.get(val_idx, np.random.default_rng([cfg.seed, 1]))
@@ -119,7 +127,8 @@ def fit_policy(
             metrics = evaluate(policy.eval(), *val)
             policy.train()
             log.info("policy step %d: val NLL %.3f, action RMSE %.3f", step, *metrics.values())
-            if state is None or metrics["nll"] < best["val_nll"]:
+            last = step == cfg.max_steps and keep == "last"
+            if state is None or metrics["nll"] < best["val_nll"] or last:
                 state = {k: v.detach().clone() for k, v in policy.state_dict().items()}
                 best = {
                     "val_nll": metrics["nll"],
@@ -131,6 +140,8 @@ def fit_policy(
         "steps": cfg.max_steps,
         "train_transitions": int(train_idx.size),
         "goal_conditioned": bool(goal_dims),
+        "normalized": normalize,
+        "kept": keep,
         "wall_s": time.monotonic() - started,
     }
     return policy.eval(), best
