@@ -144,14 +144,8 @@ def selection(exp: dict[str, Any], repo: Path) -> tuple[dict[str, Any], list[dic
             }
         table[dataset["tag"]] = rows
         if len(rows) == len(cfg["seeds"]) >= 3:
-            prior_pool = rate(
-                sum(r["by_st_nll_prior"]["success"]["successes"] for r in rows.values()),
-                sum(r["by_st_nll_prior"]["success"]["episodes"] for r in rows.values()),
-            )
-            post_pool = rate(
-                sum(r["by_st_nll"]["success"]["successes"] for r in rows.values()),
-                sum(r["by_st_nll"]["success"]["episodes"] for r in rows.values()),
-            )
+            prior_pool = _pooled({k: r["by_st_nll_prior"] for k, r in rows.items()})
+            post_pool = _pooled({k: r["by_st_nll"] for k, r in rows.items()})
             verdict, (lo, hi) = versus(prior_pool, post_pool)
             same = sum(r["step_by_st_nll"] == r["step_by_st_nll_prior"] for r in rows.values())
             claims.append({

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from pipeline.dataset import DatasetInfo, Episode
+from pipeline.errors import UserError
 
 
 def make_info(name: str = "synthetic", physics_dim: int = 5) -> DatasetInfo:
@@ -68,3 +70,12 @@ def make_skill_episodes(n_episodes: int, length: int, chunk: int = 10, seed: int
         )
         t0 += 0.01 * length
     return episodes
+
+
+def one_line_error(call) -> str:
+    """The message of the `UserError` that `call()` raises, checked to be one line."""
+    with pytest.raises(UserError) as err:
+        call()
+    message = str(err.value)
+    assert "\n" not in message
+    return message

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from factories import one_line_error
 from typer.testing import CliRunner
 
 from cli import app
@@ -265,43 +266,36 @@ def _npz(path, **arrays) -> None:
     np.savez(path, **arrays)
 
 
-def _one_line(call) -> str:
-    with pytest.raises(UserError) as err:
-        call()
-    message = str(err.value)
-    assert "\n" not in message
-    return message
-
-
 def test_bad_npz_inputs_are_one_line_errors(generated, tmp_path) -> None:
     ok = {"observations": np.zeros((5, 2)), "actions": np.zeros((5, 2)), "terminals": np.ones(5)}
     _npz(tmp_path / "missing.npz", observations=ok["observations"], actions=ok["actions"])
-    message = _one_line(lambda: read_ogbench(tmp_path / "missing.npz", "x", POINT))
+    message = one_line_error(lambda: read_ogbench(tmp_path / "missing.npz", "x", POINT))
     assert "terminals" in message and "actions, observations" in message  # what it has
     _npz(tmp_path / "lengths.npz", **{**ok, "actions": np.zeros((4, 2))})
-    assert "different lengths" in _one_line(
+    assert "different lengths" in one_line_error(
         lambda: read_ogbench(tmp_path / "lengths.npz", "x", POINT)
     )
-    assert "pointmaze-medium-v0" in _one_line(
+    assert "pointmaze-medium-v0" in one_line_error(
         lambda: read_ogbench(tmp_path / "lengths.npz", "x", "pointmaze-teleport-v0")
     )
     # medium-maze data read as the large maze: its positions lie in the large maze's walls
     _, episodes = generated
     write_ogbench_npz(tmp_path / "data.npz", episodes)
-    message = _one_line(lambda: read_ogbench(tmp_path / "data.npz", "x", "pointmaze-large-v0"))
+    message = one_line_error(lambda: read_ogbench(tmp_path / "data.npz", "x", "pointmaze-large-v0"))
     assert "another maze" in message
     # ... or the file name says which maze it is
     write_ogbench_npz(tmp_path / "pointmaze-medium-stitch-v0.npz", episodes[:1])
-    assert "make them agree" in _one_line(
+    assert "make them agree" in one_line_error(
         lambda: read_ogbench(tmp_path / "pointmaze-medium-stitch-v0.npz", "x", "pointmaze-giant-v0")
     )
     _npz(tmp_path / "ant.npz", **{**ok, "observations": np.zeros((5, 29))})
-    assert "29 values" in _one_line(lambda: read_ogbench(tmp_path / "ant.npz", "x", POINT))
+    assert "29 values" in one_line_error(lambda: read_ogbench(tmp_path / "ant.npz", "x", POINT))
     (tmp_path / "text.npz").write_text("not a zip")
-    assert "not a numpy .npz" in _one_line(lambda: read_ogbench(tmp_path / "text.npz", "x", POINT))
-    assert "not found" in _one_line(lambda: read_ogbench(tmp_path / "nope.npz", "x", POINT))
-    assert "dataset type" in _one_line(lambda: make_recipe(POINT, "path", 1, 10, 0))
-    message = _one_line(lambda: make_recipe("antmaze-medium-v0", "navigate", 1, 10, 0))
+    text = tmp_path / "text.npz"
+    assert "not a numpy .npz" in one_line_error(lambda: read_ogbench(text, "x", POINT))
+    assert "not found" in one_line_error(lambda: read_ogbench(tmp_path / "nope.npz", "x", POINT))
+    assert "dataset type" in one_line_error(lambda: make_recipe(POINT, "path", 1, 10, 0))
+    message = one_line_error(lambda: make_recipe("antmaze-medium-v0", "navigate", 1, 10, 0))
     assert "ingest.ogbench.expert" in message
 
 
@@ -343,7 +337,7 @@ def test_deploy_refuses_another_success_radius_and_pools_the_five_tasks() -> Non
     from stages.deploy import _check_ogbench_radius, _ogbench_overall
 
     spec = make_env_spec(POINT)
-    message = _one_line(lambda: _check_ogbench_radius(DeployParams(tasks=["ogbench"]), spec))
+    message = one_line_error(lambda: _check_ogbench_radius(DeployParams(tasks=["ogbench"]), spec))
     assert "deploy.success_radius: 1" in message
     _check_ogbench_radius(DeployParams(tasks=["ogbench"], success_radius=1.0), spec)
     _check_ogbench_radius(DeployParams(tasks=["corners"]), spec)  # its own radius is the user's

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from factories import one_line_error
 from typer.testing import CliRunner
 
 from cli import app
@@ -21,7 +22,6 @@ from pipeline.envs.ant_expert import ActorSpec, DirectionActor, load_actor, save
 from pipeline.envs.batch import BatchSim
 from pipeline.envs.ogbench_oracle import BFSOracle
 from pipeline.envs.spec import make_env_spec
-from pipeline.errors import UserError
 from pipeline.recording import iter_episodes, read_info, write_dataset
 from pipeline.sources import open_ogbench
 from pipeline.sources.ogbench import (
@@ -65,14 +65,6 @@ def _generate(expert: str, seed: int = 0, kind: str = "navigate", noise: float |
 @pytest.fixture(scope="module")
 def generated(expert):
     return _generate(expert)
-
-
-def _one_line(call) -> str:
-    with pytest.raises(UserError) as err:
-        call()
-    message = str(err.value)
-    assert "\n" not in message
-    return message
 
 
 def test_ant_episodes_have_the_recipes_shapes_physics_and_provenance(generated, expert) -> None:
@@ -173,14 +165,14 @@ def test_checks_catch_an_injected_fall_and_jump(generated) -> None:
 
 
 def test_bad_experts_and_options_are_one_line_user_errors(expert, tmp_path) -> None:
-    assert "ingest.ogbench.expert" in _one_line(lambda: make_recipe(ANT, "navigate", 1, 10, 0))
-    message = _one_line(
+    assert "ingest.ogbench.expert" in one_line_error(lambda: make_recipe(ANT, "navigate", 1, 10, 0))
+    message = one_line_error(
         lambda: make_recipe("pointmaze-medium-v0", "navigate", 1, 10, 0, None, expert)
     )
     assert "for ant mazes" in message and "null" in message
 
     def generate(path) -> str:
-        return _one_line(
+        return one_line_error(
             lambda: generate_ogbench(make_recipe(ANT, "navigate", 1, 10, 0, expert=str(path)), "a")
         )
 
@@ -197,7 +189,7 @@ def test_bad_experts_and_options_are_one_line_user_errors(expert, tmp_path) -> N
     from pipeline.config import IngestParams
 
     cfg = IngestParams(source="ogbench", ogbench={"path": "x.npz", "expert": expert})
-    assert "set one of them to null" in _one_line(lambda: open_ogbench(cfg))
+    assert "set one of them to null" in one_line_error(lambda: open_ogbench(cfg))
 
 
 def test_cli_ingests_ant_data_with_the_checks_in_its_report(expert, tmp_path) -> None:
