@@ -18,7 +18,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from typer.testing import CliRunner
 
 from cli import app
-from pipeline.envs.ant import EXPERT_OBS_DIM, make_direction_env
+from pipeline.envs.ant import EXPERT_OBS_DIM, UpsideDownEnd, make_direction_env, torso_up
 from pipeline.envs.ant_expert import load_actor, read_spec, save_actor
 from pipeline.errors import UserError
 from pipeline.evaluation.ant_expert import direction_speed, maze_success
@@ -96,6 +96,72 @@ def test_killed_run_resumes_from_its_last_checkpoint(tmp_path):
     assert train_direction_expert(tiny(total_steps=170), tmp_path).steps == 170
     with pytest.raises(UserError, match="learning_rate"):
         train_direction_expert(tiny(total_steps=200, learning_rate=3e-4), tmp_path)
+
+
+class _Record(BaseCallback):
+    """The phase's action noise and upside-down end in force at every collected step."""
+
+    def _on_training_start(self) -> None:
+        self.seen: list[tuple[int, float]] = []
+
+    def _on_rollout_start(self) -> None:
+        self.seen.append((self.num_timesteps, self.model.action_noise.sigma))
+
+    def _on_step(self) -> bool:
+        return True
+
+
+def _phases(*entries):
+    return [
+        {"from_step": s, "action_noise": n, "terminate_upside_down": t} for s, n, t in entries
+    ]
+
+
+def test_phases_switch_the_action_noise_at_their_step_and_are_recorded(tmp_path):
+    cfg = tiny(phases=_phases((0, 0.0, False), (100, 0.5, True)))
+    record = _Record()
+    train_direction_expert(cfg, tmp_path, callbacks=[record])
+    sigma = dict(record.seen)
+    assert sigma[99] == 0.0 and sigma[100] == 0.5 and sigma[149] == 0.5
+    state = yaml.safe_load((resume_dir(tmp_path) / "state.json").read_text())
+    assert state["phases"] == cfg.model_dump()["phases"]
+    progress = [yaml.safe_load(x) for x in (tmp_path / "progress.jsonl").read_text().splitlines()]
+    assert [p["action_noise"] for p in progress] == [0.0, 0.0, 0.5]
+
+
+def test_a_resume_may_add_a_phase_ahead_but_not_change_a_past_one(tmp_path):
+    train_direction_expert(tiny(total_steps=100, phases=_phases((0, 0.0, False))), tmp_path)
+    with pytest.raises(UserError, match="phases"):
+        train_direction_expert(
+            tiny(phases=_phases((0, 0.0, False), (50, 0.2, True))), tmp_path
+        )
+    later = tiny(phases=_phases((0, 0.0, False), (100, 0.2, True)))
+    assert train_direction_expert(later, tmp_path).steps == 150
+    state = yaml.safe_load((resume_dir(tmp_path) / "state.json").read_text())
+    assert [p["from_step"] for p in state["phases"]] == [0, 100]
+
+
+def test_phases_must_start_at_zero_and_increase():
+    for bad in (_phases((10, 0.0, False)), _phases((0, 0.0, False), (0, 0.2, True))):
+        with pytest.raises(ValueError, match="from_step"):
+            tiny(phases=bad)
+
+
+def test_upside_down_ends_the_episode_only_while_enabled():
+    env = UpsideDownEnd(make_direction_env(max_episode_steps=50))
+    try:
+        for enabled in (False, True):
+            env.enabled = enabled
+            env.reset(seed=0)
+            data = env.unwrapped.data
+            data.qpos[3:7] = [0.0, 1.0, 0.0, 0.0]  # rotated 180 degrees about x: upside down
+            data.qpos[2] = 0.5
+            assert torso_up(data.qpos[3:7]) < 0
+            _, _, terminated, _, _ = env.step(np.zeros(8))
+            assert terminated == enabled
+        assert env.flips == 1
+    finally:
+        env.close()
 
 
 def test_a_kill_during_a_checkpoint_write_loses_nothing(tmp_path):
@@ -252,6 +318,9 @@ def test_check_runs_the_speed_and_maze_protocols(tmp_path):
     speed = direction_speed(actor, episodes=2, seed=0, max_episode_steps=30)
     assert speed["episodes"] == 2 and speed["episode_steps_mean"] <= 30
     assert speed == direction_speed(actor, episodes=2, seed=0, max_episode_steps=30)
+    noisy = direction_speed(actor, episodes=2, seed=0, max_episode_steps=30, action_noise=0.5)
+    assert noisy["action_noise"] == 0.5 and noisy["flips"] in (0, 1, 2)
+    assert noisy["speed_along_command_mean"] != speed["speed_along_command_mean"]
     maze = maze_success(actor, "antmaze-medium-v0", 1, max_episode_steps=5, seed=0)
     assert [t["task_id"] for t in maze["tasks"]] == [1, 2, 3, 4, 5]
     assert maze["overall"]["episodes"] == 5 and maze["overall"]["successes"] == 0
@@ -277,6 +346,7 @@ def test_cli_trains_checks_and_a_finished_run_ships_its_actor(tmp_path):
         sac=tiny(),
         check={
             "speed_episodes": 1,
+            "noisy_episodes": 1,
             "mazes": ["antmaze-medium-v0"],
             "episodes_per_task": 1,
             "max_episode_steps": 5,

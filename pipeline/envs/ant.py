@@ -42,6 +42,32 @@ def make_direction_env(
     return GymXYWrapper(env, resample_interval=resample_interval)
 
 
+def torso_up(quat: np.ndarray) -> np.ndarray:
+    """`[...]` z component of the torso's z axis from `[..., 4]` quaternions (w, x, y, z); below 0
+    the ant is upside down. OGBench's reset noise leaves quaternions unnormalized."""
+    quat = np.asarray(quat, dtype=np.float64)
+    return 1.0 - 2.0 * (quat[..., 1] ** 2 + quat[..., 2] ** 2) / (quat**2).sum(axis=-1)
+
+
+class UpsideDownEnd(gymnasium.Wrapper):
+    """Ends the episode (terminated) when the ant is upside down, while `enabled`.
+
+    `flips` counts the episodes it ended; the trainer switches it per `sac.phases` entry.
+    """
+
+    def __init__(self, env: gymnasium.Env, enabled: bool = False) -> None:
+        super().__init__(env)
+        self.enabled = enabled
+        self.flips = 0
+
+    def step(self, action):  # type: ignore[no-untyped-def]
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        if self.enabled and not terminated and torso_up(self.unwrapped.data.qpos[3:7]) < 0.0:
+            terminated = True
+            self.flips += 1
+        return obs, reward, terminated, truncated, info
+
+
 def make_ant_maze(env_id: str, max_episode_steps: int = 1000) -> gymnasium.Env:
     """An OGBench ant maze (`antmaze-medium-v0`, ...): state observation, ends on success."""
     import ogbench.locomaze  # noqa: F401  (registers the mazes)

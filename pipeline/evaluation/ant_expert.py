@@ -1,8 +1,9 @@
 """Quality of a direction-commanded ant actor: speed along the command, and maze navigation.
 
 1. Direction task (`online-ant-v0` in OGBench's `GymXYWrapper`): mean speed along the commanded
-   direction (m/s; displacement along it per step / dt), the sideways speed, and falls (episodes
-   ended by the unhealthy check).
+   direction (m/s; displacement along it per step / dt), the sideways speed, falls (episodes
+   ended by the unhealthy check) and flips (episodes in which the ant was ever upside down);
+   once noise-free and once with OGBench's data noise on the actions (`check.action_noise`).
 2. Maze navigation as OGBench makes its data (`data_gen_scripts/generate_locomaze.py`), noise-free:
    each step the BFS oracle's next cell gives the direction, the actor walks it. Success on the
    maze's five evaluation tasks (`reset(options={"task_id": i})`, i = 1..5; within 0.5 of the goal
@@ -21,6 +22,7 @@ from pipeline.envs.ant import (
     make_ant_maze,
     make_direction_env,
     oracle_direction,
+    torso_up,
 )
 from pipeline.envs.ant_expert import DirectionActor
 from pipeline.evaluation.proportions import wilson_interval
@@ -33,12 +35,17 @@ def direction_speed(
     seed: int,
     resample_interval: int = 100,
     max_episode_steps: int = 1000,
+    action_noise: float = 0.0,
 ) -> dict:
-    """Mean speed along (and across) the commanded direction over `episodes` episodes."""
+    """Mean speed along (and across) the commanded direction over `episodes` episodes, with
+    Gaussian noise of std `action_noise` on the actor's actions (clipped to their bounds)."""
     along: list[float] = []
     across: list[float] = []
     lengths: list[int] = []
-    falls = 0
+    falls = flips = 0
+    noise = np.random.default_rng(seed)
+    low = np.asarray(actor.spec.action_low)
+    high = np.asarray(actor.spec.action_high)
     with global_seed(seed):
         env = make_direction_env(resample_interval, max_episode_steps)
         try:
@@ -46,17 +53,24 @@ def direction_speed(
             obs, _ = env.reset(seed=seed)
             for _ in range(episodes):
                 obs, _ = env.reset()
-                done, steps, forward, sideways = False, 0, 0.0, 0.0
+                done, steps, forward, sideways, flipped = False, 0, 0.0, 0.0, False
                 while not done:
                     xy = env.unwrapped.data.qpos[:2].copy()
                     direction = obs[-2:].copy()
-                    obs, reward, terminated, truncated, info = env.step(actor.act(obs))
+                    action = actor.act(obs)
+                    if action_noise > 0:
+                        action = np.clip(
+                            action + noise.normal(0.0, action_noise, action.shape), low, high
+                        )
+                    obs, reward, terminated, truncated, info = env.step(action)
+                    flipped = flipped or bool(torso_up(env.unwrapped.data.qpos[3:7]) < 0.0)
                     delta = info["xy"] - xy
                     forward += float(reward)
                     sideways += abs(float(delta[0] * -direction[1] + delta[1] * direction[0]))
                     steps += 1
                     done = terminated or truncated
                 falls += int(terminated)
+                flips += int(flipped)
                 lengths.append(steps)
                 along.append(forward / (steps * dt))
                 across.append(sideways / (steps * dt))
@@ -67,7 +81,9 @@ def direction_speed(
         "speed_along_command_mean": float(np.mean(along)),
         "speed_along_command_min": float(np.min(along)),
         "speed_across_command_mean": float(np.mean(across)),
+        "action_noise": action_noise,
         "falls": falls,
+        "flips": flips,
         "episode_steps_mean": float(np.mean(lengths)),
         "dt": dt,
     }
@@ -133,11 +149,23 @@ def check_direction_actor(actor: DirectionActor, cfg: ExpertCheckParams) -> dict
         resample_interval=sac.get("resample_interval", 100),
         max_episode_steps=sac.get("max_episode_steps", 1000),
     )
+    noisy = (
+        direction_speed(
+            actor,
+            cfg.noisy_episodes,
+            cfg.seed + 1,
+            resample_interval=sac.get("resample_interval", 100),
+            max_episode_steps=sac.get("max_episode_steps", 1000),
+            action_noise=cfg.action_noise,
+        )
+        if cfg.noisy_episodes
+        else None
+    )
     mazes = {
         env_id: maze_success(actor, env_id, cfg.episodes_per_task, cfg.max_episode_steps, cfg.seed)
         for env_id in cfg.mazes
     }
-    return {"check": cfg.model_dump(), "speed": speed, "mazes": mazes}
+    return {"check": cfg.model_dump(), "speed": speed, "noisy": noisy, "mazes": mazes}
 
 
 def summary_lines(quality: dict) -> list[str]:
@@ -148,6 +176,11 @@ def summary_lines(quality: dict) -> list[str]:
         f"(min {s['speed_along_command_min']:.3f}), {s['speed_across_command_mean']:.3f} m/s "
         f"across, {s['falls']} falls in {s['episodes']} episodes"
     ]
+    if n := quality.get("noisy"):
+        lines.append(
+            f"with action noise {n['action_noise']}: {n['speed_along_command_mean']:.3f} m/s, "
+            f"{n['flips']} of {n['episodes']} episodes upside down, {n['falls']} falls"
+        )
     for env_id, maze in quality["mazes"].items():
         o = maze["overall"]
         per_task = " ".join(f"{t['successes']}/{t['episodes']}" for t in maze["tasks"])

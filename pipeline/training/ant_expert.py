@@ -36,14 +36,15 @@ import numpy as np
 import torch
 from stable_baselines3 import SAC
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.noise import ActionNoise
 from torch import nn
 from tqdm import tqdm
 
 from pipeline.devices import resolve_device
-from pipeline.envs.ant import make_direction_env
+from pipeline.envs.ant import UpsideDownEnd, make_direction_env
 from pipeline.envs.ant_expert import ActorSpec, DirectionActor, save_actor
 from pipeline.errors import UserError
-from pipeline.expert_config import SACParams
+from pipeline.expert_config import SACParams, SACPhase
 from pipeline.io import atomic_dir
 
 log = logging.getLogger(__name__)
@@ -51,6 +52,8 @@ log = logging.getLogger(__name__)
 _ACTIVATIONS: dict[str, type[nn.Module]] = {"gelu": nn.GELU, "relu": nn.ReLU}
 # Params that change how long or where a run goes, not what it computes: a resume may change them.
 _BUDGET_KEYS = {"total_steps", "checkpoint_every", "log_every", "threads", "device"}
+# Checked on their own: a resume may add phases that have not started yet (`_past_phases`).
+_PHASES = "phases"
 _MODEL, _REPLAY, _STATE = "sac.zip", "replay.pkl", "state.json"
 ACTOR_FILE = "actor.safetensors"
 
@@ -118,15 +121,47 @@ def export_actor(model: SAC, cfg: SACParams, info: dict[str, Any]) -> DirectionA
 
 
 def _fingerprint(cfg: SACParams) -> dict[str, Any]:
-    return cfg.model_dump(exclude=_BUDGET_KEYS)
+    return cfg.model_dump(exclude=_BUDGET_KEYS | {_PHASES})
+
+
+def _past_phases(phases: list[dict[str, Any]], steps: int) -> list[dict[str, Any]]:
+    """The phases that collected some of the first `steps` environment steps."""
+    return [p for p in phases if p["from_step"] < steps]
+
+
+class _PhaseNoise(ActionNoise):
+    """Gaussian action noise whose std the current phase sets (no draw while it is 0).
+
+    stable-baselines3 hands `model.action_noise` to each rollout before the rollout's callbacks
+    run, so the phase changes this object's `sigma` rather than replacing it.
+    """
+
+    def __init__(self, dim: int) -> None:
+        super().__init__()
+        self.dim, self.sigma = dim, 0.0
+
+    def __call__(self) -> np.ndarray:
+        if self.sigma == 0.0:
+            return np.zeros(self.dim)
+        return np.random.normal(0.0, self.sigma, size=self.dim)
 
 
 class _Checkpointer(BaseCallback):
     """Progress bar, progress log, and checkpoints between rollouts (after the step's update)."""
 
-    def __init__(self, cfg: SACParams, out: Path, info: dict[str, Any], start: int) -> None:
+    def __init__(
+        self,
+        cfg: SACParams,
+        out: Path,
+        info: dict[str, Any],
+        start: int,
+        flips: UpsideDownEnd,
+        noise: _PhaseNoise,
+    ) -> None:
         super().__init__()
         self.cfg, self.out, self.info = cfg, out, info
+        self.flips, self.noise = flips, noise
+        self.phase: SACPhase | None = None
         self.last_checkpoint = start
         self.last_log = start
         self.start = start
@@ -136,7 +171,18 @@ class _Checkpointer(BaseCallback):
         self.dt = 1.0
         self.stop_signal: int | None = None
 
+    def _apply_phase(self) -> None:
+        """Action noise and the upside-down end of the phase that collects the next step."""
+        phase = self.cfg.phase_at(self.num_timesteps)
+        if phase == self.phase:
+            return
+        self.noise.sigma = phase.action_noise
+        self.flips.enabled = phase.terminate_upside_down
+        self.phase = phase
+        log.info("step %d: phase %s", self.num_timesteps, phase.model_dump())
+
     def _on_training_start(self) -> None:
+        self._apply_phase()
         self.dt = float(self.training_env.envs[0].unwrapped.dt)
         tty = sys.stderr.isatty()
         self.bar = tqdm(
@@ -165,6 +211,7 @@ class _Checkpointer(BaseCallback):
             raise _Stopped(self.stop_signal)
         if self.num_timesteps - self.last_checkpoint >= self.cfg.checkpoint_every:
             self.save()
+        self._apply_phase()
 
     def _on_training_end(self) -> None:
         if self.num_timesteps > self.last_checkpoint:
@@ -181,6 +228,8 @@ class _Checkpointer(BaseCallback):
             "episode_return_mean": float(np.mean([e["r"] for e in episodes])) if episodes else 0.0,
             "episode_length_mean": float(np.mean([e["l"] for e in episodes])) if episodes else 0.0,
             "ent_coef": float(torch.exp(self.model.log_ent_coef.detach()).item()),
+            "action_noise": self.phase.action_noise if self.phase else 0.0,
+            "upside_down_ends": self.flips.flips,  # since this process started
             "steps_per_s": (self.num_timesteps - self.start) / elapsed if elapsed > 0 else 0.0,
             "utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         }
@@ -201,7 +250,12 @@ class _Checkpointer(BaseCallback):
         with atomic_dir(resume_dir(self.out)) as tmp:
             self.model.save(tmp / _MODEL)
             self.model.save_replay_buffer(tmp / _REPLAY)
-            state = {"steps": steps, "sac": _fingerprint(self.cfg), "metrics": self.metrics()}
+            state = {
+                "steps": steps,
+                "sac": _fingerprint(self.cfg),
+                _PHASES: _past_phases(self.cfg.model_dump()[_PHASES], steps),
+                "metrics": self.metrics(),
+            }
             (tmp / _STATE).write_text(json.dumps(state, indent=2) + "\n")
         info = {**self.info, "steps": steps, "metrics_at_export": self.metrics()}
         save_actor(export_actor(self.model, self.cfg, info), self.out / ACTOR_FILE)
@@ -246,6 +300,14 @@ def _load(cfg: SACParams, env: Any, folder: Path) -> SAC:
         raise UserError(
             f"{folder} was written with other sac params ({', '.join(changed)} differ); "
             f"restore them, or delete {folder} to start afresh"
+        )
+    steps = int(state["steps"])
+    # written before phases existed: one phase, no noise, no upside-down end
+    done = _past_phases(state.get(_PHASES, [SACPhase().model_dump()]), steps)
+    if done != _past_phases(cfg.model_dump()[_PHASES], steps):
+        raise UserError(
+            f"{folder} is at step {steps}, collected with sac.phases {done}; a resumed run may "
+            f"only add phases from step {steps} on; restore them, or delete {folder}"
         )
     device = resolve_device(cfg.device, "sac.device")
     model = SAC.load(folder / _MODEL, env=env, device=device, force_reset=True)
@@ -311,7 +373,7 @@ def _train(
     cfg: SACParams, out: Path, info: dict[str, Any] | None, callbacks: Sequence[BaseCallback]
 ) -> TrainSummary:
     torch.set_num_threads(cfg.threads)
-    env = make_direction_env(cfg.resample_interval, cfg.max_episode_steps)
+    env = flips = UpsideDownEnd(make_direction_env(cfg.resample_interval, cfg.max_episode_steps))
     try:
         folder = resume_dir(out)
         if (folder / _STATE).exists():
@@ -333,7 +395,9 @@ def _train(
         t0 = time.monotonic()
         remaining = cfg.total_steps - start
         if remaining > 0:
-            checkpointer = _Checkpointer(cfg, out, actor_info, start)
+            noise = _PhaseNoise(int(env.action_space.shape[0]))
+            model.action_noise = noise
+            checkpointer = _Checkpointer(cfg, out, actor_info, start, flips, noise)
             try:
                 with _checkpoint_on_signals(checkpointer):
                     model.learn(

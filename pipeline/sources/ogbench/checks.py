@@ -15,6 +15,7 @@ from collections.abc import Iterable
 import numpy as np
 
 from pipeline.dataset import DatasetInfo, Episode
+from pipeline.envs.ant import torso_up
 from pipeline.envs.checks import DatasetReport
 from pipeline.envs.checks import _Walls as MazeWalls  # the maze checks' wall geometry
 from pipeline.envs.ogbench import OGBenchMazeSpec
@@ -141,9 +142,7 @@ def ant_fallen(observations: np.ndarray) -> np.ndarray:
     """`[N]` bool: the ant's torso (`qpos[2]` height, `qpos[3:7]` quaternion w, x, y, z) is
     outside the healthy height range or upside down (its z axis pointing below the horizon)."""
     z = observations[:, 2]
-    quat = observations[:, 3:7]
-    # z component of the torso's z axis; OGBench's reset noise leaves the quaternion unnormalized
-    up = 1.0 - 2.0 * (quat[:, 1] ** 2 + quat[:, 2] ** 2) / (quat**2).sum(axis=1)
+    up = torso_up(observations[:, 3:7])
     low, high = ANT_HEALTHY_Z
     return (z < low) | (z > high) | (up < 0.0)
 
