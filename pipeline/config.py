@@ -210,7 +210,7 @@ class TrainParams(_Section):
     eval_every: int = Field(250, ge=1, description="Steps between validations.")
     val_windows: int = Field(2000, ge=1, description="Validation windows (a fixed subset).")
     select: Literal["st_nll", "st_nll_prior"] = Field(
-        "st_nll",
+        "st_nll_prior",
         description="The validation metric that picks the published checkpoint. st_nll: s_T NLL "
         "under the posterior skill; st_nll_prior: s_T NLL with the skill drawn from the prior, "
         "as the planner draws it. The best of each is also kept in models/<name>/by/<metric>/.",
