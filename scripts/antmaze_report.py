@@ -1,0 +1,262 @@
+"""results/antmaze.md + results/antmaze.json: OPOSM on OGBench's ant mazes (issue 19 §3).
+
+Collects what the per-maze runs wrote (one data root per maze, e.g. `--data data/ant/medium`):
+the data (ingest, segment), training, validation (TAWM vs single-step open loop) and deployment on
+OGBench's five evaluation tasks, with the shipped expert's own check (`experts/ant/actor.json`)
+and the published numbers beside ours. Reruns of the commands it lists reproduce every number.
+
+    uv run python scripts/antmaze_report.py --maze medium=data/ant/medium [--maze large=...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# OGBench's paper, navigate datasets, success % (mean +- std over 8 seeds), as quoted in the
+# project's shared REFERENCES.md.
+PUBLISHED = {
+    "medium": {
+        "GCBC": (29, 4),
+        "GCIVL": (72, 8),
+        "GCIQL": (71, 4),
+        "QRL": (88, 3),
+        "CRL": (95, 1),
+        "HIQL": (96, 1),
+    },
+    "large": {
+        "GCBC": (24, 2),
+        "GCIVL": (16, 5),
+        "GCIQL": (34, 4),
+        "QRL": (75, 6),
+        "CRL": (83, 4),
+        "HIQL": (91, 2),
+    },
+}
+# The paper (D4RL antmaze-*-diverse, its own protocols): table 1 fixed goal, table 4 random goals.
+PAPER = {
+    "medium": {"table 1 (fixed goal)": "78.29 +- 4.32", "table 4 (random goals)": "72.6 +- 4.7"},
+    "large": {"table 1 (fixed goal)": "70.2 +- 4.6", "table 4 (random goals)": "65.07 +- 4.96"},
+}
+
+
+def _read(path: Path) -> dict | None:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+
+
+def _pct(rate: float | None, lo: float | None = None, hi: float | None = None) -> str:
+    if rate is None:
+        return "–"
+    text = f"{100 * rate:.0f}"
+    return text if lo is None else f"{text} ({100 * lo:.0f}-{100 * hi:.0f})"
+
+
+def collect(maze: str, root: Path) -> dict:
+    reports = root / "reports"
+    out: dict = {"data_root": str(root)}
+    for stage in ("ingest", "segment", "dynamics", "validate", "deploy"):
+        out[stage] = _read(reports / stage / "report.json")
+    out["train"] = _read(reports / "train" / "metrics.json")
+    return out
+
+
+def _deploy_rows(deploy: dict) -> list[str]:
+    tasks = [t for t in deploy["tasks"] if t != "ogbench"]
+    head = "| agent | " + " | ".join(t.replace("ogbench-", "") for t in tasks) + " | overall |"
+    rows = [head, "|---" * (len(tasks) + 2) + "|"]
+    for agent, by_task in deploy["by_agent"].items():
+        cells = [
+            _pct(
+                by_task[t]["success_rate"],
+                by_task[t]["success_ci95_low"],
+                by_task[t]["success_ci95_high"],
+            )
+            for t in [*tasks, "ogbench"]
+        ]
+        cells[-1] = f"**{cells[-1]}**"
+        rows.append(f"| {agent} | " + " | ".join(cells) + " |")
+    return rows
+
+
+def _expert_row(expert: dict, env_id: str) -> str | None:
+    maze = expert.get("quality", {}).get("mazes", {}).get(env_id)
+    if not maze:
+        return None
+    cells = [
+        _pct(t["success_rate"], t["success_ci95_low"], t["success_ci95_high"])
+        for t in maze["tasks"]
+    ]
+    o = maze["overall"]
+    overall = _pct(o["success_rate"], o["success_ci95_low"], o["success_ci95_high"])
+    n = maze["tasks"][0]["episodes"]
+    return (
+        f"| expert (noise-free, `oposm expert check`, {n} per task) | "
+        + " | ".join(cells)
+        + f" | **{overall}** |"
+    )
+
+
+def render(results: dict) -> str:
+    expert = results["expert"]
+    lines = [
+        "# OGBench ant mazes: OPOSM beside OGBench's published table",
+        "",
+        "Issue 19 §3. Produced by `uv run python scripts/antmaze_report.py` from the runs listed "
+        "per maze (their commands below); every setting is in `antmaze.json`.",
+        "",
+        f"Machine: {results['machine']}.",
+        "",
+        "## Protocol",
+        "",
+        "- Environment: OGBench's `antmaze-{medium,large}-v0` (ogbench's locomaze: the D4RL ant, "
+        "gear 30, 0.1 s per step), 29-dim state (qpos + qvel), 8 torques.",
+        "- Tasks: its five evaluation tasks per maze (start and goal cells with its noise), "
+        "at most 1000 steps, success within 0.5 of the goal. The planner gets the goal "
+        "as `[x, y]`; OGBench's agents get a full goal observation (29 numbers: a standing "
+        "ant at the goal).",
+        "- Data: OGBench's `navigate` recipe run here with our expert in the place of OGBench's "
+        "(BFS oracle direction -> our direction-commanded SAC actor -> + N(0, 0.2), clipped; a new "
+        "goal on each reach; 1001-step episodes), fewer episodes than OGBench's 1000 (below).",
+        f"- Expert: `experts/ant/actor.safetensors`, {expert.get('steps')} SAC steps "
+        f"({expert.get('sac_phases')}).",
+        "",
+    ]
+    for maze, r in results["mazes"].items():
+        lines += [f"## antmaze-{maze}-navigate", ""]
+        ingest, train, validate, deploy = r["ingest"], r["train"], r["validate"], r["deploy"]
+        if ingest:
+            lines.append(
+                f"- Data: {ingest['episodes']:.0f} episodes, {ingest['steps']:.0f} steps; ant "
+                f"fallen or upside down in {ingest.get('fallen_steps', 0):.0f} steps "
+                f"({ingest.get('fallen_episodes', 0):.0f} "
+                f"episodes); {ingest.get('goals_per_1000_steps', float('nan')):.1f} goals reached "
+                "per 1000 steps."
+            )
+        if train:
+            lines.append(
+                f"- Training (EM): {train['steps']} steps ({train['steps_per_s']:.2f} steps/s, "
+                f"{train['wall_s'] / 60:.0f} min of this call on {train.get('device')}); "
+                f"published checkpoint by `{train['select']}` at step {train['best_step']}; "
+                f"validation s_T NLL {train['val']['st_nll']:.2f} (posterior skill), "
+                f"{train['val']['st_nll_prior']:.2f} (prior skills) at the last evaluation."
+            )
+        if validate:
+            prior = validate["prior"]
+            parts = [
+                f"{k.split('_')[1]} skill(s) ({v['steps']} steps): TAWM "
+                f"{v['tawm_error_mean']:.2f} m, single-step {v['single_step_error_mean']:.2f} m, "
+                f"no model {v['no_model_error_mean']:.2f} m; within 1 sigma "
+                f"{100 * v['tawm_within_1sigma']:.0f} %"
+                for k, v in prior.items()
+            ]
+            lines += [
+                f"- Open loop, prior skills from {validate['starts']} held-out starts (mean x-y "
+                "error of the predicted end; paper figure 4 is antmaze-large):",
+                *[f"  - {p}" for p in parts],
+            ]
+        lines.append("")
+        if deploy:
+            lines += [
+                f"Success (%, 95 % Wilson interval), {deploy['episodes_per_task']} episodes per "
+                f"task, {deploy['max_steps']} steps:",
+                "",
+                *_deploy_rows(deploy),
+            ]
+        else:
+            lines += ["Not deployed yet.", ""]
+            row = _expert_row(expert, f"antmaze-{maze}-v0")
+            if row:
+                lines += [
+                    "| agent | task1 | task2 | task3 | task4 | task5 | overall |",
+                    "|---|---|---|---|---|---|---|",
+                ]
+        row = _expert_row(expert, f"antmaze-{maze}-v0")
+        if row:
+            lines.append(row)
+        lines += [
+            "",
+            "Published (OGBench's paper, navigate, 8 seeds): "
+            + ", ".join(f"{k} {m} +- {s}" for k, (m, s) in PUBLISHED[maze].items())
+            + ". The paper (D4RL antmaze-"
+            + maze
+            + "-diverse, its own goals, not this protocol): "
+            + ", ".join(f"{k} {v}" for k, v in PAPER[maze].items())
+            + ".",
+            "",
+        ]
+        verdict = results["verdicts"].get(maze)
+        if verdict:
+            lines += [f"Verdict: {verdict}", ""]
+        if r.get("commands"):
+            lines += ["Commands:", "", "```bash", *r["commands"], "```", ""]
+    return "\n".join(lines).rstrip() + "\n"
+
+
+def verdict(maze: str, deploy: dict | None) -> str | None:
+    """OPOSM vs the best published method: does its interval lie above, below, or overlap?"""
+    if not deploy or "oposm" not in deploy["by_agent"]:
+        return None
+    o = deploy["by_agent"]["oposm"]["ogbench"]
+    best, (mean, std) = max(PUBLISHED[maze].items(), key=lambda kv: kv[1][0])
+    lo, hi = 100 * o["success_ci95_low"], 100 * o["success_ci95_high"]
+    if lo > mean + std:
+        word = "holds"
+    elif hi < mean - std:
+        word = "does not hold"
+    else:
+        word = "inconclusive"
+    return (
+        f"OPOSM beats every published method on antmaze-{maze}-navigate: **{word}** "
+        f"(OPOSM {100 * o['success_rate']:.0f} % [{lo:.0f}, {hi:.0f}] vs {best} {mean} +- {std})."
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--maze", action="append", default=[], help="medium=DATA_ROOT (repeat)")
+    parser.add_argument("--commands", type=Path, help="JSON: maze -> list of commands run")
+    parser.add_argument("--machine", default=f"{platform.machine()} CPU, {os.cpu_count()} cores")
+    parser.add_argument("--out", type=Path, default=ROOT / "results")
+    args = parser.parse_args()
+    actor = _read(ROOT / "experts" / "ant" / "actor.json") or {}
+    info = actor.get("info", {})
+    expert = {
+        "steps": info.get("steps"),
+        "sac_phases": ", then ".join(
+            f"from step {p['from_step']}: action noise {p['action_noise']}"
+            + (", episode ends on a flip" if p["terminate_upside_down"] else "")
+            for p in info.get("sac", {}).get("phases", [])
+        )
+        or "OGBench's recipe",
+        "quality": info.get("quality", {}),
+    }
+    commands = _read(args.commands) if args.commands else {}
+    mazes = {}
+    for item in args.maze:
+        maze, _, root = item.partition("=")
+        mazes[maze] = collect(maze, Path(root)) | {"commands": (commands or {}).get(maze, [])}
+    results = {
+        "what": "OPOSM on OGBench's ant mazes (issue 19 §3), beside OGBench's published table",
+        "machine": args.machine,
+        "expert": expert,
+        "mazes": mazes,
+        "published_ogbench": PUBLISHED,
+        "paper": PAPER,
+        "verdicts": {m: v for m, r in mazes.items() if (v := verdict(m, r["deploy"]))},
+    }
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "antmaze.json").write_text(json.dumps(results, indent=1) + "\n")
+    (args.out / "antmaze.md").write_text(render(results))
+    print(f"wrote {args.out / 'antmaze.md'} and antmaze.json")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,97 @@
+"""scripts/antmaze_report.py: the ant-maze report from a run's reports, and its verdicts."""
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _module():
+    spec = importlib.util.spec_from_file_location(
+        "antmaze_report", ROOT / "scripts/antmaze_report.py"
+    )
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _rate(successes: int, n: int) -> dict:
+    from pipeline.evaluation.proportions import wilson_interval
+
+    lo, hi = wilson_interval(successes, n)
+    return {
+        "episodes": n,
+        "successes": successes,
+        "success_rate": successes / n,
+        "success_ci95_low": lo,
+        "success_ci95_high": hi,
+    }
+
+
+def _deploy(successes: list[int], n: int = 50) -> dict:
+    tasks = {f"ogbench-task{i + 1}": _rate(s, n) for i, s in enumerate(successes)}
+    tasks["ogbench"] = _rate(sum(successes), n * len(successes))
+    return {
+        "tasks": [*tasks],
+        "episodes_per_task": n,
+        "max_steps": 1000,
+        "by_agent": {"oposm": tasks, "gcbc": tasks},
+    }
+
+
+def test_verdict_compares_the_interval_with_the_best_published_method():
+    m = _module()
+    assert "**holds**" in m.verdict("medium", _deploy([50, 50, 50, 50, 50]))  # [99, 100] > 97
+    assert "**does not hold**" in m.verdict("medium", _deploy([20, 20, 20, 20, 20]))
+    assert "**inconclusive**" in m.verdict("medium", _deploy([48, 48, 48, 48, 48]))
+    assert "HIQL 96" in m.verdict("medium", _deploy([48] * 5))
+    assert "CRL" not in m.verdict("large", _deploy([48] * 5))  # large's best is HIQL 91
+    assert m.verdict("medium", None) is None
+
+
+def test_report_reads_a_runs_reports_and_writes_markdown_and_json(tmp_path, monkeypatch):
+    run = tmp_path / "ant"
+    reports = run / "reports"
+    for stage, body in {
+        "ingest": {
+            "episodes": 4,
+            "steps": 4004,
+            "fallen_steps": 0,
+            "fallen_episodes": 0,
+            "goals_per_1000_steps": 4.5,
+        },
+        "deploy": _deploy([40, 41, 42, 43, 44]),
+    }.items():
+        (reports / stage).mkdir(parents=True)
+        (reports / stage / "report.json").write_text(json.dumps(body))
+    commands = tmp_path / "commands.json"
+    commands.write_text(
+        json.dumps({"medium": ["oposm ingest -p params-ogbench-antmaze-medium.yaml"]})
+    )
+    out = tmp_path / "results"
+    monkeypatch.setattr(
+        sys,
+        "argv",
+        [
+            "x",
+            "--maze",
+            f"medium={run}",
+            "--commands",
+            str(commands),
+            "--out",
+            str(out),
+            "--machine",
+            "test box",
+        ],
+    )
+    _module().main()
+    text = (out / "antmaze.md").read_text()
+    assert "| oposm | 80 (67-89) |" in text and "| gcbc |" in text
+    assert "4 episodes, 4004 steps" in text and "HIQL 96 +- 1" in text
+    assert "oposm ingest -p params-ogbench-antmaze-medium.yaml" in text
+    assert "Machine: test box." in text
+    results = json.loads((out / "antmaze.json").read_text())
+    assert results["mazes"]["medium"]["train"] is None  # not run: reported as missing, not faked
+    assert "does not hold" in results["verdicts"]["medium"]
