@@ -112,9 +112,7 @@ class _Record(BaseCallback):
 
 
 def _phases(*entries):
-    return [
-        {"from_step": s, "action_noise": n, "terminate_upside_down": t} for s, n, t in entries
-    ]
+    return [{"from_step": s, "action_noise": n, "terminate_upside_down": t} for s, n, t in entries]
 
 
 def test_phases_switch_the_action_noise_at_their_step_and_are_recorded(tmp_path):
@@ -132,9 +130,7 @@ def test_phases_switch_the_action_noise_at_their_step_and_are_recorded(tmp_path)
 def test_a_resume_may_add_a_phase_ahead_but_not_change_a_past_one(tmp_path):
     train_direction_expert(tiny(total_steps=100, phases=_phases((0, 0.0, False))), tmp_path)
     with pytest.raises(UserError, match="phases"):
-        train_direction_expert(
-            tiny(phases=_phases((0, 0.0, False), (50, 0.2, True))), tmp_path
-        )
+        train_direction_expert(tiny(phases=_phases((0, 0.0, False), (50, 0.2, True))), tmp_path)
     later = tiny(phases=_phases((0, 0.0, False), (100, 0.2, True)))
     assert train_direction_expert(later, tmp_path).steps == 150
     state = yaml.safe_load((resume_dir(tmp_path) / "state.json").read_text())
