@@ -207,7 +207,7 @@ def _train(
             "steps": progress.step,
             "select": cfg.select,
             "best_step": selected_step,
-            f"best_val_{cfg.select}": selected_value,
+            **{f"best_val_{c}": progress.best_of(c)[1] for c in SELECTION_CRITERIA},
             **{
                 f"best_step_by_{c}": progress.best_of(c)[0]
                 for c in SELECTION_CRITERIA
