@@ -12,7 +12,6 @@ import hashlib
 import json
 import logging
 import shutil
-import time
 from pathlib import Path
 
 import torch
@@ -196,9 +195,8 @@ def _train(
         Callbacks(log_metrics, save_best, save_resume),
         progress_bar=progress_bar and main,
     )
-    start_step, started = progress.step, time.monotonic()
     progress = trainer.fit(progress)
-    run_s = max(time.monotonic() - started, 1e-9)
+    run_s = max(progress.elapsed_s, 1e-9)  # over resumed runs, like `steps`
     if world > 1:
         _check_in_sync(accelerator, model)
     selected_step, selected_value = progress.best_of(cfg.select)
@@ -214,8 +212,8 @@ def _train(
                 if c != cfg.select
             },
             "wall_s": progress.elapsed_s,
-            "steps_per_s": (progress.step - start_step) / run_s,
-            "windows_per_s": (progress.step - start_step) * cfg.batch_size / run_s,
+            "steps_per_s": progress.step / run_s,
+            "windows_per_s": progress.step * cfg.batch_size / run_s,
             "processes": world,
             "device": str(accelerator.device),
         }

@@ -76,6 +76,8 @@ def test_each_criterion_keeps_its_best_and_select_picks_the_published_one(paths)
     assert all(torch.equal(top[k], chosen[k]) for k in top)
     headline = json.loads(paths.metrics("train").read_text())
     assert headline["best_step"] == meta["st_nll_prior"]["step"]
+    for c in ("st_nll", "st_nll_prior"):  # headlines are rounded to 4 decimals
+        assert headline[f"best_val_{c}"] == pytest.approx(meta[c]["val"][c], abs=1e-4)
 
 
 def test_a_second_run_of_the_same_params_restores_the_outputs_without_training(paths):
@@ -85,8 +87,12 @@ def test_a_second_run_of_the_same_params_restores_the_outputs_without_training(p
         for f in sorted(out.rglob("*"), reverse=True):
             f.unlink() if f.is_file() else f.rmdir()
         out.rmdir()
+    headline = json.loads(paths.metrics("train").read_text())
     progress = _run(paths)
     assert progress.step == 20
+    again = json.loads(paths.metrics("train").read_text())
+    assert again["steps_per_s"] > 0  # the whole run's rate, not this call's (no steps)
+    assert again["steps_per_s"] == pytest.approx(headline["steps_per_s"], rel=0.5)
     for name, value in first.items():
         assert torch.equal(value, _weights(paths)[name])
 
