@@ -62,16 +62,35 @@ def _pct(rate: float | None, lo: float | None = None, hi: float | None = None) -
 def collect(maze: str, root: Path) -> dict:
     reports = root / "reports"
     out: dict = {"data_root": str(root)}
-    for stage in ("ingest", "segment", "dynamics", "validate", "deploy"):
+    for stage in ("ingest", "segment", "dynamics", "validate"):
         out[stage] = _read(reports / stage / "report.json")
     out["train"] = _read(reports / "train" / "metrics.json")
+    out["deploy"] = _merged_deploys(
+        [reports / "deploy" / "report.json"]
+        + sorted((root / "runs").glob("*/reports/deploy/report.json"))
+    )
     return out
+
+
+def _merged_deploys(paths: list[Path]) -> dict | None:
+    """The agents of every deploy report of a maze (ad-hoc `--run`s included), each agent with
+    its own episodes per task (the same tasks and seeds: a smaller run deploys the first ones)."""
+    reports = [r for p in paths if (r := _read(p))]
+    if not reports:
+        return None
+    merged = {k: v for k, v in reports[0].items() if k != "by_agent"}
+    merged["by_agent"], merged["episodes_by_agent"] = {}, {}
+    for r in reports:
+        for agent, by_task in r["by_agent"].items():
+            merged["by_agent"][agent] = by_task
+            merged["episodes_by_agent"][agent] = r["episodes_per_task"]
+    return merged
 
 
 def _deploy_rows(deploy: dict) -> list[str]:
     tasks = [t for t in deploy["tasks"] if t != "ogbench"]
-    head = "| agent | " + " | ".join(t.replace("ogbench-", "") for t in tasks) + " | overall |"
-    rows = [head, "|---" * (len(tasks) + 2) + "|"]
+    names = " | ".join(t.replace("ogbench-", "") for t in tasks)
+    rows = [f"| agent | per task | {names} | overall |", "|---" * (len(tasks) + 3) + "|"]
     for agent, by_task in deploy["by_agent"].items():
         cells = [
             _pct(
@@ -82,7 +101,8 @@ def _deploy_rows(deploy: dict) -> list[str]:
             for t in [*tasks, "ogbench"]
         ]
         cells[-1] = f"**{cells[-1]}**"
-        rows.append(f"| {agent} | " + " | ".join(cells) + " |")
+        n = deploy.get("episodes_by_agent", {}).get(agent, deploy["episodes_per_task"])
+        rows.append(f"| {agent} | {n} | " + " | ".join(cells) + " |")
     return rows
 
 
@@ -98,7 +118,7 @@ def _expert_row(expert: dict, env_id: str) -> str | None:
     overall = _pct(o["success_rate"], o["success_ci95_low"], o["success_ci95_high"])
     n = maze["tasks"][0]["episodes"]
     return (
-        f"| expert (noise-free, `oposm expert check`, {n} per task) | "
+        f"| expert (noise-free, `oposm expert check`) | {n} | "
         + " | ".join(cells)
         + f" | **{overall}** |"
     )
@@ -165,8 +185,8 @@ def render(results: dict) -> str:
         lines.append("")
         if deploy:
             lines += [
-                f"Success (%, 95 % Wilson interval), {deploy['episodes_per_task']} episodes per "
-                f"task, {deploy['max_steps']} steps:",
+                "Success (%, 95 % Wilson interval), episodes per task as listed, at most "
+                f"{deploy['max_steps']} steps:",
                 "",
                 *_deploy_rows(deploy),
             ]
@@ -175,8 +195,8 @@ def render(results: dict) -> str:
             row = _expert_row(expert, f"antmaze-{maze}-v0")
             if row:
                 lines += [
-                    "| agent | task1 | task2 | task3 | task4 | task5 | overall |",
-                    "|---|---|---|---|---|---|---|",
+                    "| agent | per task | task1 | task2 | task3 | task4 | task5 | overall |",
+                    "|---|---|---|---|---|---|---|---|",
                 ]
         row = _expert_row(expert, f"antmaze-{maze}-v0")
         if row:

@@ -66,6 +66,10 @@ def test_report_reads_a_runs_reports_and_writes_markdown_and_json(tmp_path, monk
     }.items():
         (reports / stage).mkdir(parents=True)
         (reports / stage / "report.json").write_text(json.dumps(body))
+    llp = _deploy([10] * 5, n=10)
+    llp["by_agent"] = {"llp": llp["by_agent"]["oposm"]}
+    (run / "runs/llp/reports/deploy").mkdir(parents=True)
+    (run / "runs/llp/reports/deploy/report.json").write_text(json.dumps(llp))
     commands = tmp_path / "commands.json"
     commands.write_text(
         json.dumps({"medium": ["oposm ingest -p params-ogbench-antmaze-medium.yaml"]})
@@ -88,7 +92,8 @@ def test_report_reads_a_runs_reports_and_writes_markdown_and_json(tmp_path, monk
     )
     _module().main()
     text = (out / "antmaze.md").read_text()
-    assert "| oposm | 80 (67-89) |" in text and "| gcbc |" in text
+    assert "| oposm | 50 | 80 (67-89) |" in text and "| gcbc | 50 |" in text
+    assert "| llp | 10 | 100 (72-100) |" in text  # an ad-hoc run's report joins the table
     assert "4 episodes, 4004 steps" in text and "HIQL 96 +- 1" in text
     assert "oposm ingest -p params-ogbench-antmaze-medium.yaml" in text
     assert "Machine: test box." in text
