@@ -5,7 +5,8 @@ the data (ingest, segment), training, validation (TAWM vs single-step open loop)
 OGBench's five evaluation tasks, with the shipped expert's own check (`experts/ant/actor.json`)
 and the published numbers beside ours. Reruns of the commands it lists reproduce every number.
 
-    uv run python scripts/antmaze_report.py --maze medium=data/ant/medium [--maze large=...]
+    uv run python scripts/antmaze_report.py --maze medium=data/ant/medium \
+        --commands results/antmaze-commands.json [--maze large=...]
 """
 
 from __future__ import annotations
@@ -161,18 +162,27 @@ def render(results: dict) -> str:
                 "per 1000 steps."
             )
         if train:
+            val = train["val"]
+            # the skill informs the TAWM when the posterior skill's NLL is well below the prior's
+            uninformed = val["st_nll_prior"] - val["st_nll"] < 0.05 * abs(val["st_nll_prior"])
             lines.append(
                 f"- Training (EM): {train['steps']} steps ({train['steps_per_s']:.2f} steps/s, "
-                f"{train['wall_s'] / 60:.0f} min of this call on {train.get('device')}); "
+                f"{train['wall_s'] / 60:.0f} min in all on {train.get('device')}); "
                 f"published checkpoint by `{train['select']}` at step {train['best_step']}; "
                 f"validation s_T NLL {train['val']['st_nll']:.2f} (posterior skill), "
-                f"{train['val']['st_nll_prior']:.2f} (prior skills) at the last evaluation."
+                f"{train['val']['st_nll_prior']:.2f} (prior skills), KL(q || prior) "
+                f"{val.get('kl', float('nan')):.1f} nats at the last evaluation"
+                + (
+                    " (within 5 %: the skill tells the TAWM little about where a window ends)."
+                    if uninformed
+                    else "."
+                )
             )
         if validate:
             prior = validate["prior"]
             parts = [
                 f"{k.split('_')[1]} skill(s) ({v['steps']} steps): TAWM "
-                f"{v['tawm_error_mean']:.2f} m, single-step {v['single_step_error_mean']:.2f} m, "
+                f"{v['tawm_error_mean']:.2f} m, single-step {v['single_step_error_mean']:.3g} m, "
                 f"no model {v['no_model_error_mean']:.2f} m; within 1 sigma "
                 f"{100 * v['tawm_within_1sigma']:.0f} %"
                 for k, v in prior.items()
