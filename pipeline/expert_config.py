@@ -104,7 +104,6 @@ class SACParams(_Section):
         "cpu", description="Torch device; small networks train fastest on CPU."
     )
 
-
     @field_validator("phases")
     @classmethod
     def _phases_in_order(cls, phases: list[SACPhase]) -> list[SACPhase]:

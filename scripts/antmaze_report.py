@@ -12,10 +12,14 @@ and the published numbers beside ours. Reruns of the commands it lists reproduce
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
+import sys
 from pathlib import Path
+
+from pipeline.errors import UserError
+from pipeline.io import atomic_path, write_json
+from stages.results_common import read
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -46,13 +50,6 @@ PAPER = {
 }
 
 
-def _read(path: Path) -> dict | None:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError):
-        return None
-
-
 def _pct(rate: float | None, lo: float | None = None, hi: float | None = None) -> str:
     if rate is None:
         return "–"
@@ -64,8 +61,8 @@ def collect(maze: str, root: Path) -> dict:
     reports = root / "reports"
     out: dict = {"data_root": str(root)}
     for stage in ("ingest", "segment", "dynamics", "validate"):
-        out[stage] = _read(reports / stage / "report.json")
-    out["train"] = _read(reports / "train" / "metrics.json")
+        out[stage] = read(reports / stage / "report.json")
+    out["train"] = read(reports / "train" / "metrics.json")
     out["deploy"] = _merged_deploys(
         [reports / "deploy" / "report.json"]
         + sorted((root / "runs").glob("*/reports/deploy/report.json"))
@@ -76,7 +73,7 @@ def collect(maze: str, root: Path) -> dict:
 def _merged_deploys(paths: list[Path]) -> dict | None:
     """The agents of every deploy report of a maze (ad-hoc `--run`s included), each agent with
     its own episodes per task (the same tasks and seeds: a smaller run deploys the first ones)."""
-    reports = [r for p in paths if (r := _read(p))]
+    reports = [r for p in paths if (r := read(p))]
     if not reports:
         return None
     merged = {k: v for k, v in reports[0].items() if k != "by_agent"}
@@ -256,7 +253,7 @@ def main() -> None:
     parser.add_argument("--machine", default=f"{platform.machine()} CPU, {os.cpu_count()} cores")
     parser.add_argument("--out", type=Path, default=ROOT / "results")
     args = parser.parse_args()
-    actor = _read(ROOT / "experts" / "ant" / "actor.json") or {}
+    actor = read(ROOT / "experts" / "ant" / "actor.json") or {}
     info = actor.get("info", {})
     expert = {
         "steps": info.get("steps"),
@@ -268,7 +265,7 @@ def main() -> None:
         or "OGBench's recipe",
         "quality": info.get("quality", {}),
     }
-    commands = _read(args.commands) if args.commands else {}
+    commands = read(args.commands) if args.commands else {}
     mazes = {}
     for item in args.maze:
         maze, _, root = item.partition("=")
@@ -282,11 +279,14 @@ def main() -> None:
         "paper": PAPER,
         "verdicts": {m: v for m, r in mazes.items() if (v := verdict(m, r["deploy"]))},
     }
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "antmaze.json").write_text(json.dumps(results, indent=1) + "\n")
-    (args.out / "antmaze.md").write_text(render(results))
+    write_json(args.out / "antmaze.json", results)
+    with atomic_path(args.out / "antmaze.md") as tmp:
+        tmp.write_text(render(results))
     print(f"wrote {args.out / 'antmaze.md'} and antmaze.json")
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except UserError as exc:  # a corrupt report: one line naming it, no traceback
+        sys.exit(f"error: {exc}")

@@ -100,3 +100,26 @@ def test_report_reads_a_runs_reports_and_writes_markdown_and_json(tmp_path, monk
     results = json.loads((out / "antmaze.json").read_text())
     assert results["mazes"]["medium"]["train"] is None  # not run: reported as missing, not faked
     assert "does not hold" in results["verdicts"]["medium"]
+
+
+def test_a_corrupt_report_is_a_one_line_error_naming_it(tmp_path):
+    import subprocess
+
+    bad = tmp_path / "ant/reports/ingest/report.json"
+    bad.parent.mkdir(parents=True)
+    bad.write_text("{not json")
+    result = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "scripts/antmaze_report.py"),
+            "--maze",
+            f"medium={tmp_path / 'ant'}",
+            "--out",
+            str(tmp_path / "results"),
+        ],
+        capture_output=True,
+        text=True,
+    )
+    assert result.returncode == 1 and "Traceback" not in result.stderr
+    assert result.stderr.strip().count("\n") == 0 and str(bad) in result.stderr
+    assert not (tmp_path / "results").exists()  # nothing half-written

@@ -142,22 +142,20 @@ def maze_success(
 def check_direction_actor(actor: DirectionActor, cfg: ExpertCheckParams) -> dict:
     """The speed check and every maze in `cfg.mazes`, as one JSON-ready dict."""
     sac = actor.spec.info.get("sac", {})
-    speed = direction_speed(
-        actor,
-        cfg.speed_episodes,
-        cfg.seed,
-        resample_interval=sac.get("resample_interval", 100),
-        max_episode_steps=sac.get("max_episode_steps", 1000),
-    )
-    noisy = (
-        direction_speed(
+
+    def speed_check(episodes: int, seed: int, action_noise: float = 0.0) -> dict:
+        return direction_speed(
             actor,
-            cfg.noisy_episodes,
-            cfg.seed + 1,
+            episodes,
+            seed,
             resample_interval=sac.get("resample_interval", 100),
             max_episode_steps=sac.get("max_episode_steps", 1000),
-            action_noise=cfg.action_noise,
+            action_noise=action_noise,
         )
+
+    speed = speed_check(cfg.speed_episodes, cfg.seed)
+    noisy = (
+        speed_check(cfg.noisy_episodes, cfg.seed + 1, cfg.action_noise)
         if cfg.noisy_episodes
         else None
     )
