@@ -4,15 +4,17 @@
 # the paper's procedure as reference; EM training at the default and the paper's sizes), printed
 # as one table with the issue's targets.
 #
-# Written without a GPU (the session that wrote it had none): nothing here has run on CUDA yet.
+# Dry run of the plumbing without a GPU (no compile, tiny sizes):
+#   python bench/gpu_table.py --device cpu --envs 4 --no-compile --train-steps 3
 #
 # Where: the device tool's machine (no network; its python3 holds torch 2.11 + CUDA, pytest,
 # typer, safetensors, tqdm, ...). What it lacks travels as wheels in .whl/, fetched here first
 # by `bash bench/gpu_wheels.sh`. Then, from this repo's root:
 #   run(command="bash bench/gpu.sh", timeout_s=600,
 #       carry=[".whl", "data/models/pointmaze-medium", "data/segments/pointmaze-medium"])
-# (the trained default model and its segments: `oposm train` / `oposm segment` first). Results
-# also land in $OUT (gpu.json, tests.log, table.txt) when the device tool sets OUT.
+# (the trained default model and its segments: `oposm train` / `oposm segment` first; LLP is timed
+# only if its models travel too). Results also land in $OUT (gpu.json, written after every
+# section, tests.log, bench.log, table.txt) when the device tool sets OUT.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
@@ -29,12 +31,12 @@ export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1 MUJOCO_GL
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$OUT/gpu.txt"
 
 echo "== CUDA tests"
-timeout 180 "$PY" -m pytest -q -ra -m gpu tests/test_gpu.py 2>&1 | tee "$OUT/tests.log"
+timeout 150 "$PY" -m pytest -q -ra -m gpu tests/test_gpu.py 2>&1 | tee "$OUT/tests.log"
 tests=${PIPESTATUS[0]}
 
 echo "== benchmarks"
-timeout 360 "$PY" bench/gpu_table.py --out "$OUT/gpu.json" 2>"$OUT/bench.log" | tee "$OUT/table.txt"
+timeout 330 "$PY" bench/gpu_table.py --out "$OUT/gpu.json" 2>"$OUT/bench.log" | tee "$OUT/table.txt"
 bench=${PIPESTATUS[0]}
-[ "$bench" -eq 0 ] || tail -20 "$OUT/bench.log"
+[ "$bench" -eq 0 ] || grep -A12 Traceback "$OUT/bench.log" | tail -40
 echo "tests exit $tests, benchmarks exit $bench"
 exit $(( tests || bench ))

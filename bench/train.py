@@ -13,7 +13,7 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from bench.roofline import roofline
 from pipeline.config import Params
-from pipeline.devices import resolve_device, torch_threads
+from pipeline.devices import auto_threads, resolve_device, torch_threads
 from pipeline.model import SkillModel, SkillModelConfig
 from pipeline.paths import Paths
 from pipeline.segments import load_segments
@@ -34,7 +34,7 @@ def bench_train(params: Params, paths: Paths, steps: int, warmup: int = 5) -> di
     cfg = params.train
     device = resolve_device(cfg.device, "train.device")
     segments = load_segments(paths.segments(params.ingest.name))
-    with torch_threads(cfg.threads if device.type == "cpu" else None):
+    with torch_threads(auto_threads(cfg.threads) if device.type == "cpu" else None):
         log.info(
             "timing %d %s steps (after %d warm-up) on %s: z %d, hidden %d, batch %d",
             steps, cfg.method, warmup, device, cfg.z_dim, cfg.hidden, cfg.batch_size,
@@ -50,7 +50,9 @@ def bench_train(params: Params, paths: Paths, steps: int, warmup: int = 5) -> di
             cfg.min_std,
         )
         model = SkillModel(config).to(device)
-        updater = make_updater(cfg.method, model, cfg.lr_e, cfg.lr_m, cfg.grad_clip)
+        updater = make_updater(
+            cfg.method, model, cfg.lr_e, cfg.lr_m, cfg.grad_clip, compile=cfg.compile
+        )
         sampler = WindowSampler(segments, "train", device, cfg.seed)
         for _ in range(warmup):
             updater.step(sampler.sample(cfg.batch_size))

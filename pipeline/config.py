@@ -233,6 +233,11 @@ class TrainParams(_Section):
     device: Literal["auto", "cpu", "cuda"] = Field(
         "auto", description="auto: CUDA when available, else CPU."
     )
+    compile: bool = Field(
+        False,
+        description="torch.compile each step's losses and their backward (same random draws as "
+        "eager; compiling takes a minute or more on CPU: for long runs on a GPU).",
+    )
 
 
 class DynamicsParams(_Section):

@@ -34,7 +34,8 @@ log = logging.getLogger(__name__)
 
 BY_CRITERION = "by"  # models/<name>/by/<criterion>/: the best checkpoint of each criterion
 
-# Params that change how long a run goes, not what it computes: a run may be resumed with new ones.
+# Params that change how long or where a run goes, not what it computes (compile: the same draws,
+# float rounding aside): a run may be resumed with new ones.
 # `select` only picks which kept checkpoint is published.
 _BUDGET_KEYS = {
     "max_steps",
@@ -43,6 +44,7 @@ _BUDGET_KEYS = {
     "checkpoint_every",
     "device",
     "threads",
+    "compile",
     "select",
 }
 
@@ -131,7 +133,13 @@ def _train(
     model.set_normalization(stats.state_mean, stats.state_std, stats.action_mean, stats.action_std)
     model.to(accelerator.device)
     updater = make_updater(
-        cfg.method, model, cfg.lr_e, cfg.lr_m, cfg.grad_clip, _grad_reducer(accelerator)
+        cfg.method,
+        model,
+        cfg.lr_e,
+        cfg.lr_m,
+        cfg.grad_clip,
+        _grad_reducer(accelerator),
+        cfg.compile,
     )
     train = WindowSampler(segments, "train", accelerator.device, seed=cfg.seed + 1000 * rank)
     val = WindowSampler(segments, "validation", accelerator.device, seed=cfg.seed)

@@ -1,13 +1,20 @@
 """The planning benchmark's reference (the paper's procedure, one environment at a time) and the
 matmul roofline: the reference optimizes the same objective as the batched planner."""
 
+from pathlib import Path
+
 import torch
+from factories import make_info, make_skill_episodes
 
 from bench.reference import ReferencePlanner
 from bench.roofline import matmul_gflops
+from bench.train import bench_train
+from pipeline.config import load_params
 from pipeline.model import SkillModel, SkillModelConfig
 from pipeline.model.rollout import rollout_skills
+from pipeline.paths import Paths
 from pipeline.planning import CEMConfig, GoalCost, PlannerConfig, SkillPlanner, problem_keys
+from pipeline.segments import build_segments, save_segments
 
 
 def _model() -> SkillModel:
@@ -39,3 +46,24 @@ def test_reference_returns_its_plans_objective_and_matches_the_batched_planner()
 
 def test_matmul_roofline_is_measured():
     assert matmul_gflops(torch.device("cpu"), 64, 64, 64, seconds=0.05) > 0.1
+
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_bench_train_times_steps_of_the_params_model_with_threads_auto(tmp_path):
+    """`oposm bench train` with the params' defaults (`train.threads: auto`) on saved segments."""
+    episodes = make_skill_episodes(n_episodes=10, length=60, seed=0)
+    split = {"train": 0.8, "validation": 0.1, "test": 0.1}
+    segments = build_segments(episodes, make_info("skills", physics_dim=0), 11, 1, split, seed=0)
+    params = load_params(
+        ROOT / "params.yaml",
+        ["ingest.name=tiny", "train.device=cpu", "train.hidden=16", "train.z_dim=4",
+         "train.batch_size=8"],
+    )  # fmt: skip
+    assert params.train.threads == "auto"
+    paths = Paths(tmp_path)
+    save_segments(segments, paths.segments("tiny"))
+    got = bench_train(params, paths, steps=3, warmup=1)
+    assert got["windows_per_s"] == 8 * got["steps_per_s"] > 0
+    assert got["flops_per_step"] > 0 and 0 < got["roofline_fraction"] < 1

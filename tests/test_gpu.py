@@ -18,7 +18,7 @@ from pipeline.planning import CEMConfig, GoalCost, PlannerConfig, SkillPlanner, 
 from pipeline.planning.mpc import SkillMPC
 from pipeline.training.data import WindowBatch
 from pipeline.training.losses import e_objective, m_objective, vi_objective
-from pipeline.training.updaters import EMUpdater
+from pipeline.training.updaters import EMUpdater, VIUpdater
 
 pytestmark = pytest.mark.gpu
 CLOSE = {"rtol": 1e-4, "atol": 1e-4}
@@ -61,6 +61,34 @@ def check_training_matches_cpu(device: str) -> None:
     metrics = EMUpdater(dev, 1e-3, 1e-3).step(dev_batch)
     assert all(np.isfinite(v) for v in metrics.values())
     assert all(not torch.equal(b, p.cpu()) for b, p in zip(before, dev.parameters(), strict=True))
+
+
+def check_compiled_training_step_matches_eager(device: str) -> None:
+    """`train.compile`: EM and VI steps with compiled losses draw the same skills and end at the
+    weights and metrics of eager steps (float rounding aside)."""
+    g = torch.Generator().manual_seed(4)
+    batch = WindowBatch(torch.randn(32, 11, 4, generator=g), torch.randn(32, 10, 2, generator=g))
+    batch = WindowBatch(batch.states.to(device), batch.actions.to(device))
+    for make in (
+        lambda m, c: EMUpdater(m, 1e-3, 1e-3, compile=c),
+        lambda m, c: VIUpdater(m, 1e-3, compile=c),
+    ):
+        runs = []
+        graphs = torch._dynamo.utils.counters["stats"]["unique_graphs"]
+        for compile in (False, True):
+            model = _model().to(device)
+            updater = make(model, compile)
+            torch.manual_seed(5)
+            metrics = [updater.step(batch) for _ in range(3)]
+            runs.append((model, metrics))
+        (eager, want), (compiled, got) = runs
+        assert torch._dynamo.utils.counters["stats"]["unique_graphs"] > graphs  # it compiled
+        for w, c in zip(want, got, strict=True):
+            assert w.keys() == c.keys()
+            for name in w:
+                torch.testing.assert_close(c[name], w[name], rtol=1e-3, atol=1e-3, msg=name)
+        for w, c in zip(eager.parameters(), compiled.parameters(), strict=True):
+            torch.testing.assert_close(c, w, rtol=1e-3, atol=1e-3)
 
 
 def _chain(model: SkillModel, s0: torch.Tensor, eps: torch.Tensor) -> torch.Tensor:
@@ -130,6 +158,10 @@ def check_graphed_planner_matches_eager(device: str) -> None:
 
 def test_training_objectives_gradients_and_an_em_step_on_cuda_match_cpu():
     check_training_matches_cpu("cuda")
+
+
+def test_compiled_training_step_on_cuda_matches_eager():
+    check_compiled_training_step_matches_eager("cuda")
 
 
 def test_skill_rollout_and_mpc_on_cuda_match_cpu():

@@ -7,6 +7,10 @@ no-op otherwise), clipped, and applied.
 Metrics stay on the device as 0-d tensors (the loop sums them there and reads them once per
 validation). The one host read of a half-step is whether its loss, gradient norm and metrics are
 finite: a non-finite one skips the optimizer step, so the model stays intact.
+
+With `compile` (`train.compile`) each loss, forward and backward, runs through `torch.compile`
+(the posterior's GRU stays eager: dynamo does not trace RNNs); its random draws are eager's
+(inductor's `fallback_random`), so a compiled run samples the same skills as an eager one.
 """
 
 from __future__ import annotations
@@ -21,6 +25,17 @@ from pipeline.training.data import WindowBatch
 from pipeline.training.losses import e_step_loss, m_step_loss, vi_loss
 
 GradReducer = Callable[[list[nn.Parameter]], None]
+Loss = Callable[[SkillModel, WindowBatch], tuple[torch.Tensor, dict[str, torch.Tensor]]]
+
+
+def maybe_compiled(loss: Loss, compile: bool) -> Loss:
+    """`loss` itself, or compiled for a fixed batch shape with eager's random numbers."""
+    if not compile:
+        return loss
+    import torch._inductor.config as inductor
+
+    inductor.fallback_random = True
+    return torch.compile(loss, dynamic=False)
 
 
 def no_reduce(params: list[nn.Parameter]) -> None:
@@ -70,8 +85,11 @@ class EMUpdater:
         lr_m: float,
         grad_clip: float | None = None,
         reduce_grads: GradReducer = no_reduce,
+        compile: bool = False,
     ):
         self.model = model
+        self.e_loss = maybe_compiled(e_step_loss, compile)
+        self.m_loss = maybe_compiled(m_step_loss, compile)
         self.e_params = list(model.posterior.parameters())
         self.m_params = model.generative()
         self.optimizers = {
@@ -84,7 +102,7 @@ class EMUpdater:
     def e_step(self, batch: WindowBatch) -> tuple[dict[str, torch.Tensor], bool]:
         """One Adam step on the posterior (phi) minimizing eq. 15; metrics, and whether they
         were finite (else nothing changed)."""
-        loss, metrics = e_step_loss(self.model, batch)
+        loss, metrics = self.e_loss(self.model, batch)
         finite = _apply(
             loss, metrics, self.e_params, self.optimizers["e"], self.reduce_grads, self.grad_clip
         )
@@ -92,7 +110,7 @@ class EMUpdater:
 
     def m_step(self, batch: WindowBatch) -> tuple[dict[str, torch.Tensor], bool]:
         """One Adam step on policy, TAWM and prior (theta, psi, omega) minimizing eq. 16."""
-        loss, metrics = m_step_loss(self.model, batch)
+        loss, metrics = self.m_loss(self.model, batch)
         finite = _apply(
             loss, metrics, self.m_params, self.optimizers["m"], self.reduce_grads, self.grad_clip
         )
@@ -115,8 +133,10 @@ class VIUpdater:
         lr: float,
         grad_clip: float | None = None,
         reduce_grads: GradReducer = no_reduce,
+        compile: bool = False,
     ):
         self.model = model
+        self.loss = maybe_compiled(vi_loss, compile)
         self.params = [p for p in model.parameters() if p.requires_grad]
         self.optimizers = {"vi": torch.optim.Adam(self.params, lr=lr)}
         self.grad_clip = grad_clip
@@ -124,7 +144,7 @@ class VIUpdater:
 
     def step(self, batch: WindowBatch) -> dict[str, torch.Tensor]:
         """One joint step; metrics as 0-d tensors on the model's device."""
-        loss, metrics = vi_loss(self.model, batch)
+        loss, metrics = self.loss(self.model, batch)
         _apply(loss, metrics, self.params, self.optimizers["vi"], self.reduce_grads, self.grad_clip)
         return metrics
 
@@ -136,8 +156,9 @@ def make_updater(
     lr_m: float,
     grad_clip: float | None,
     reduce_grads: GradReducer = no_reduce,
+    compile: bool = False,
 ) -> EMUpdater | VIUpdater:
     """`em` (the paper's algorithm) or `vi` (the naive ablation; uses `lr_m`)."""
     if method == "em":
-        return EMUpdater(model, lr_e, lr_m, grad_clip, reduce_grads)
-    return VIUpdater(model, lr_m, grad_clip, reduce_grads)
+        return EMUpdater(model, lr_e, lr_m, grad_clip, reduce_grads, compile)
+    return VIUpdater(model, lr_m, grad_clip, reduce_grads, compile)
