@@ -348,6 +348,19 @@ class PlannerParams(_Section):
         return self
 
 
+class SubgoalParams(_Section):
+    """`deploy.subgoals`: aim each replan at a waypoint from a graph of the data's skills when
+    the goal is more than `reach` skills away (`pipeline/planning/subgoals.py`)."""
+
+    enabled: bool = Field(False, description="Plan to waypoints (false: to the goal, the paper).")
+    cell: float = Field(
+        0.25, gt=0, description="Grid side (m) of the graph's nodes over the goal dimensions."
+    )
+    reach: int = Field(
+        5, ge=1, description="Skills ahead a waypoint may be (at most the planner's horizon)."
+    )
+
+
 class LLPParams(_Section):
     """`deploy.llp`: CEM over whitened actions along the single-step model's predicted states
     (paper §4.2, LLP). Defaults: the paper code's maze2d settings; its timing figure used
@@ -449,6 +462,7 @@ class DeployParams(_Section):
         "robustness experiment, paper fig. 5); the models stay as trained.",
     )
     planner: PlannerParams = Field(default_factory=PlannerParams)
+    subgoals: SubgoalParams = Field(default_factory=SubgoalParams)
     llp: LLPParams = Field(default_factory=LLPParams)
     gcbc: GCBCAgentParams = Field(default_factory=GCBCAgentParams)
     expert: ExpertAgentParams = Field(default_factory=ExpertAgentParams)
@@ -464,6 +478,11 @@ class DeployParams(_Section):
     def _agents_once(self) -> DeployParams:
         if len(set(self.agents)) != len(self.agents):
             raise ValueError(f"each agent at most once, got {self.agents}")
+        if self.subgoals.enabled and self.subgoals.reach > self.planner.horizon:
+            raise ValueError(
+                f"subgoals.reach ({self.subgoals.reach}) must be <= planner.horizon "
+                f"({self.planner.horizon})"
+            )
         return self
 
 

@@ -52,6 +52,7 @@ from pipeline.planning.llp import LowLevelMPC, LowLevelPlanner
 from pipeline.planning.mpc import SkillMPC
 from pipeline.planning.settings import llp_config, planner_config
 from pipeline.planning.skills import SkillPlanner
+from pipeline.planning.subgoals import SubgoalGraph
 from pipeline.segments import Segments, load_segments
 from pipeline.viz.deploy import recording_name, write_episode_recording
 from pipeline.viz.overview import write_overview
@@ -87,10 +88,17 @@ def _oposm(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, devi
             f"trained on '{meta.get('dataset')}'; re-run `oposm train`"
         )
     planner = SkillPlanner(model, planner_config(cfg.planner))
+    subgoals = None
+    if cfg.subgoals.enabled:
+        sub = cfg.subgoals
+        subgoals = SubgoalGraph.from_segments(segments, spec.goal_dims, sub.cell, sub.reach, device)
+        log.info("subgoal graph: %d nodes (cells of %g m), reach %d skills",
+                 len(subgoals.nodes), sub.cell, sub.reach)  # fmt: skip
     return AgentSetup(
-        SkillMPC(model, planner, cfg.sample_actions, spec.goal_dims),
+        SkillMPC(model, planner, cfg.sample_actions, spec.goal_dims, subgoals),
         cfg.replan_every or int(meta["window"]) - 1,
-        {"model": str(model_dir), "model_step": meta.get("step"), **cfg.planner.model_dump()},
+        {"model": str(model_dir), "model_step": meta.get("step"), **cfg.planner.model_dump()}
+        | ({f"subgoals_{k}": v for k, v in cfg.subgoals.model_dump().items()} if subgoals else {}),
         plan_state_steps=int(meta["window"]) - 1,  # a skill
     )
 

@@ -19,6 +19,7 @@ from pipeline.model.skill_model import SkillModel
 from pipeline.planning.costs import GoalCost
 from pipeline.planning.noise import normal, problem_keys, substream
 from pipeline.planning.skills import Plan, SkillPlanner, shift_plan
+from pipeline.planning.subgoals import SubgoalGraph
 
 
 class SkillMPC:
@@ -30,6 +31,8 @@ class SkillMPC:
         sample_actions: Sample a ~ pi(a | s, z) instead of taking its mean.
         goal_dims: State dimensions the goal refers to (the environment spec's `goal_dims`);
             None: the first G (`GoalCost`'s default).
+        subgoals: Plan to its waypoints instead of the goal when the goal is far
+            (`deploy.subgoals`); None: always to the goal (the paper).
     """
 
     name = "oposm"
@@ -40,8 +43,11 @@ class SkillMPC:
         planner: SkillPlanner,
         sample_actions: bool = False,
         goal_dims: tuple[int, ...] | None = None,
+        subgoals: SubgoalGraph | None = None,
     ):
         self.model = model
+        self.subgoals = subgoals
+        self.targets: torch.Tensor | None = None  # [A, G] what the last replan aimed at
         self.planner = planner
         self.sample_actions = sample_actions
         self.goal_dims = goal_dims
@@ -77,9 +83,14 @@ class SkillMPC:
         if self.planner.config.warm_start:
             warm = self._warm[idx, None, None]
             init = torch.where(warm, shift_plan(self._eps[idx]), torch.zeros_like(self._eps[idx]))
+        targets = self._goals[idx]
+        if self.subgoals is not None:
+            dims = list(self.goal_dims or range(targets.shape[-1]))
+            targets = self.subgoals.waypoints(s0[:, dims], targets)
+        self.targets = targets
         plan = self.planner.plan(
             s0,
-            GoalCost(self._goals[idx], self.goal_dims),
+            GoalCost(targets, self.goal_dims),
             substream(self._plan_keys[idx], self._replans[idx]),
             init,
         )

@@ -1,0 +1,84 @@
+"""Waypoints from the graph of the data's skills (`deploy.subgoals`): round a wall the way the
+demonstrations went, the goal itself once it is within reach, and wired into the skill MPC."""
+
+import numpy as np
+import pytest
+import torch
+from factories import make_info, make_skill_episodes
+
+from pipeline.model import SkillModel, SkillModelConfig
+from pipeline.planning import CEMConfig, PlannerConfig, SkillPlanner
+from pipeline.planning.mpc import SkillMPC
+from pipeline.planning.subgoals import SubgoalGraph
+from pipeline.segments import build_segments
+
+
+def _u_corridor(step: float = 0.1) -> np.ndarray:
+    """Positions along a U: up the left leg x = 0, across y = 4, down the right leg x = 4 (a
+    wall between the legs below y = 4), there and back."""
+    up = np.stack([np.zeros(41), np.arange(41) * step], axis=1)
+    across = np.stack([np.arange(1, 41) * step, np.full(40, 4.0)], axis=1)
+    down = np.stack([np.full(40, 4.0), 4.0 - np.arange(1, 41) * step], axis=1)
+    path = np.concatenate([up, across, down])
+    return np.concatenate([path, path[::-1]])
+
+
+def _graph(reach: int = 5, window: int = 5) -> SubgoalGraph:
+    points = _u_corridor()
+    first = np.arange(len(points) - window)
+    return SubgoalGraph.from_windows(points, first, first + window, cell=0.25, reach=reach)
+
+
+def test_waypoint_leads_round_the_wall_and_is_the_goal_once_within_reach():
+    graph = _graph()
+    # Nodes are cells of the corridor; a skill spans 0.5 m, so the far leg is ~24 skills away.
+    assert graph.nodes.shape[1] == 2 and torch.isfinite(graph.hops).all()
+    assert torch.equal(graph.hops, graph.hops.T)
+    positions = torch.tensor([[0.0, 0.0], [4.0, 2.0], [2.0, 4.0]])
+    goals = torch.tensor([[4.0, 0.0], [4.0, 0.0], [4.0, 0.0]])
+    targets = graph.waypoints(positions, goals)
+    # From the left leg's foot: up the left leg (towards the goal would be into the wall).
+    x, y = targets[0].tolist()
+    assert abs(x) < 0.3 and 1.5 < y < 3.2
+    # Within reach (2 m = 4 skills down the right leg): the goal itself.
+    torch.testing.assert_close(targets[1], goals[1])
+    # From the top: along the top towards the right leg, no further than reach skills.
+    x, y = targets[2].tolist()
+    assert 3.0 < x <= 4.2 and y > 3.0
+
+
+def test_unreachable_goal_and_single_skill_reach():
+    points = np.concatenate([_u_corridor(), [[10.0, 10.0], [10.0, 10.1]]])  # an island
+    first = np.arange(len(points) - 7)
+    graph = SubgoalGraph.from_windows(points, first, first + 5, cell=0.25, reach=1)
+    goals = torch.tensor([[10.0, 10.0], [4.0, 0.0]])
+    targets = graph.waypoints(torch.tensor([[0.0, 0.0], [0.0, 0.0]]), goals)
+    torch.testing.assert_close(targets[0], goals[0])  # not connected: the goal itself
+    step = torch.linalg.vector_norm(targets[1] - torch.tensor([0.0, 0.0]))
+    assert 0.2 < step < 0.8  # one skill (0.5 m) up the left leg
+    with pytest.raises(ValueError, match="cell"):
+        SubgoalGraph.from_windows(points, first, first + 5, cell=0.0, reach=1)
+
+
+def test_from_segments_and_the_mpc_aims_at_waypoints():
+    episodes = make_skill_episodes(n_episodes=8, length=60, seed=0)
+    split = {"train": 0.75, "validation": 0.125, "test": 0.125}
+    segments = build_segments(episodes, make_info("skills", physics_dim=0), 11, 1, split, seed=0)
+    graph = SubgoalGraph.from_segments(segments, (0, 1), cell=0.5, reach=2)
+    xy = segments.states[:, :2]
+    assert (graph.nodes.numpy() >= xy.min(0) - 1e-5).all()
+    assert (graph.nodes.numpy() <= xy.max(0) + 1e-5).all()
+
+    torch.manual_seed(0)
+    sd, ad = segments.info.state_dim, segments.info.action_dim
+    model = SkillModel(SkillModelConfig(sd, ad, z_dim=4, hidden=16)).eval()
+    agent = SkillMPC(model, SkillPlanner(model, PlannerConfig(2, CEMConfig(16, 4, 2))),
+                     goal_dims=(0, 1), subgoals=graph)  # fmt: skip
+    far = graph.nodes[graph.hops[0].argmax()].numpy()
+    agent.reset(far[None].astype(np.float64), seeds=[0])
+    start = np.zeros((1, sd))
+    start[0, :2] = graph.nodes[0].numpy()
+    agent.replan(np.array([0]), start)
+    want = graph.waypoints(torch.as_tensor(start[:, :2]).float(), torch.as_tensor(far[None]))
+    torch.testing.assert_close(agent.targets, want)
+    assert graph.hops[0, graph.nearest(agent.targets)].item() <= 2
