@@ -82,3 +82,28 @@ def test_from_segments_and_the_mpc_aims_at_waypoints():
     want = graph.waypoints(torch.as_tensor(start[:, :2]).float(), torch.as_tensor(far[None]))
     torch.testing.assert_close(agent.targets, want)
     assert graph.hops[0, graph.nearest(agent.targets)].item() <= 2
+
+
+def test_episodes_with_subgoals_record_one_waypoint_per_replan():
+    from pipeline.envs.batch import BatchSim
+    from pipeline.envs.spec import PointMazeSpec
+    from pipeline.evaluation.episodes import RunConfig, run_episodes
+    from pipeline.evaluation.tasks import EpisodeSpec
+
+    # Data along Medium's top corridor (y = 2.5 m, x from -2.5 to 0.5: cells (1, 1) to (1, 4)).
+    points = np.stack([np.linspace(-2.5, 0.5, 61), np.full(61, 2.5)], axis=1)
+    points = np.concatenate([points, points[::-1]])
+    first = np.arange(len(points) - 10)
+    graph = SubgoalGraph.from_windows(points, first, first + 10, cell=0.25, reach=1)
+    torch.manual_seed(0)
+    model = SkillModel(SkillModelConfig(4, 2, z_dim=4, hidden=16)).eval()
+    agent = SkillMPC(model, SkillPlanner(model, PlannerConfig(2, CEMConfig(16, 4, 2))),
+                     goal_dims=(0, 1), subgoals=graph)  # fmt: skip
+    spec = EpisodeSpec("goal", 0, np.array([-2.5, 2.5, 0.0, 0.0]), np.array([0.5, 2.5]), 3)
+    (result,), _ = run_episodes(
+        agent, BatchSim(PointMazeSpec.create("PointMaze_Medium-v3"), 1), [spec], RunConfig(20, 5)
+    )
+    trace = result.trace
+    assert result.replans == 4 and len(trace.plan_targets) == 4
+    first_target = trace.plan_targets[0]
+    assert -2.5 < first_target[0] < 0.0 and abs(first_target[1] - 2.5) < 0.1  # 1 skill ahead

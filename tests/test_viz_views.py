@@ -329,3 +329,18 @@ def test_show_first_puts_the_overview_on_screen(monkeypatch):
     assert runs.show_first("overview", expected=2, timeout=5)
     assert located == ["about:overview"]
     assert not runs.show_first("overview", expected=3, timeout=5, failed=lambda: True)
+
+
+def test_a_recording_shows_the_waypoint_each_plan_aimed_at(tmp_path, env):
+    """`deploy.subgoals`: each replan's waypoint is drawn where it is, labelled."""
+    result = _result("oposm", "corners", 4, False)
+    result.trace.plan_targets = [np.array([-1.5, 1.5]), np.array([-0.5, 0.5])]
+    path = tmp_path / "waypoints.rrd"
+    write_episode_recording(path, result, env)
+    _verify(path)
+    positions = _values(path, "/plan/waypoint", "positions")
+    assert np.allclose(np.concatenate(positions), maze.to_view(result.trace.plan_targets))
+    assert _values(path, "/plan/waypoint", "labels")[0] == ["waypoint"]
+    plain = tmp_path / "plain.rrd"
+    write_episode_recording(plain, _result("oposm", "corners", 5, False), env)
+    assert "/plan/waypoint" not in _entities(plain)

@@ -55,6 +55,8 @@ class EpisodeTrace:
         plans: Per replan, `[P + 1, sd]` the predicted states of the chosen plan (the TAWM's per
             skill, or the single-step model's per action for LLP).
         plan_costs: Per replan, the plan's predicted cost.
+        plan_targets: Per replan, the waypoint `[G]` the plan aimed at (`deploy.subgoals`);
+            empty when the agent plans to the goal.
     """
 
     states: list[np.ndarray] = field(default_factory=list)
@@ -62,6 +64,7 @@ class EpisodeTrace:
     replan_steps: list[int] = field(default_factory=list)
     plans: list[np.ndarray] = field(default_factory=list)
     plan_costs: list[float] = field(default_factory=list)
+    plan_targets: list[np.ndarray] = field(default_factory=list)
 
 
 @dataclass
@@ -169,6 +172,8 @@ def _replan(agent: Agent, wave: _Wave, rows: np.ndarray, t: int, calls: list[Pla
     predicted = plan.states.double().cpu().numpy()
     costs = plan.cost.double().cpu().numpy()
     finite = np.isfinite(costs) & np.isfinite(predicted).all(axis=(1, 2))
+    targets = getattr(agent, "targets", None)  # waypoints of an MPC with subgoals
+    targets = None if targets is None else targets.double().cpu().numpy()
     for j, i in enumerate(rows):
         result = wave.results[i]
         result.replans += 1
@@ -176,6 +181,8 @@ def _replan(agent: Agent, wave: _Wave, rows: np.ndarray, t: int, calls: list[Pla
         result.trace.replan_steps.append(t)
         result.trace.plans.append(predicted[j])
         result.trace.plan_costs.append(float(costs[j]))
+        if targets is not None:
+            result.trace.plan_targets.append(targets[j])
     wave.fail(rows[~finite], "the world model predicted non-finite states for every candidate")
 
 

@@ -47,7 +47,7 @@ class SkillMPC:
     ):
         self.model = model
         self.subgoals = subgoals
-        self.targets: torch.Tensor | None = None  # [A, G] what the last replan aimed at
+        self.targets: torch.Tensor | None = None  # [A, G] the last replan's waypoints, if any
         self.planner = planner
         self.sample_actions = sample_actions
         self.goal_dims = goal_dims
@@ -87,7 +87,7 @@ class SkillMPC:
         if self.subgoals is not None:
             dims = list(self.goal_dims or range(targets.shape[-1]))
             targets = self.subgoals.waypoints(s0[:, dims], targets)
-        self.targets = targets
+            self.targets = targets
         plan = self.planner.plan(
             s0,
             GoalCost(targets, self.goal_dims),

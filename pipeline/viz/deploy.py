@@ -237,6 +237,12 @@ def _log_plans(
                 ),
             )
         earlier.append(xy[1:])
+        if trace.plan_targets:  # deploy.subgoals: the waypoint this plan aimed at
+            rec.log(
+                "plan/waypoint",
+                rr.Points2D(to_view(trace.plan_targets[k][None]), radii=2.0 * radius,
+                            colors=color, labels="waypoint", draw_order=ORDER_PLAN),
+            )  # fmt: skip
         if np.isfinite(cost):
             rec.log("metrics/plan_cost", rr.Scalars(cost))
 
