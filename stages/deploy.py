@@ -54,6 +54,7 @@ from pipeline.planning.settings import llp_config, planner_config
 from pipeline.planning.skills import SkillPlanner
 from pipeline.planning.subgoals import SubgoalGraph
 from pipeline.segments import Segments, load_segments
+from pipeline.sources.ogbench.expert import load_ant_expert
 from pipeline.viz.deploy import recording_name, write_episode_recording
 from pipeline.viz.overview import write_overview
 from stages.report import write_report
@@ -145,11 +146,16 @@ def _ogbench_oracle(params: Params, segments: Segments, spec: EnvSpec) -> AgentS
     if noise is None:
         noise = POINT_NOISE if recorded is None else float(recorded)
     source = "deploy.expert" if params.deploy.expert.action_noise is not None else "the dataset's"
-    return AgentSetup(
-        OGBenchOracleAgent(spec.env_id, noise),
-        None,
-        {"config": "OGBench's BFS oracle (generate_locomaze.py)", "noise": noise, "from": source},
-    )
+    info = {"config": "OGBench's BFS oracle (generate_locomaze.py)", "noise": noise, "from": source}
+    actor = None
+    if spec.loco == "ant":  # the actor that made the data walks the oracle's directions
+        made_with = (segments.info.generator or {}).get("expert") or {}
+        path = made_with.get("path", "experts/ant/actor.safetensors")
+        actor, provenance = load_ant_expert(path, spec)
+        info |= {"actor": str(path), "actor_sha256": provenance["sha256"]}
+        if made_with.get("sha256") not in (None, provenance["sha256"]):
+            log.warning("%s is not the actor that made the data (its sha256 differs)", path)
+    return AgentSetup(OGBenchOracleAgent(spec.env_id, noise, actor=actor), None, info)
 
 
 def _expert(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, device) -> AgentSetup:

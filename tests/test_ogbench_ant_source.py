@@ -20,7 +20,7 @@ from cli import app
 from pipeline.envs.ant import expert_observation
 from pipeline.envs.ant_expert import ActorSpec, DirectionActor, load_actor, save_actor
 from pipeline.envs.batch import BatchSim
-from pipeline.envs.ogbench_oracle import BFSOracle
+from pipeline.envs.ogbench_oracle import BFSOracle, OGBenchOracleAgent
 from pipeline.envs.spec import make_env_spec
 from pipeline.recording import iter_episodes, read_info, write_dataset
 from pipeline.sources import open_ogbench
@@ -102,6 +102,23 @@ def test_without_noise_the_action_is_the_expert_walking_the_oracle_direction(exp
         wanted = actor.act(expert_observation(ep.observations[t], direction))
         np.testing.assert_array_equal(ep.actions[t], np.clip(wanted, -1, 1))
     assert info.generator["noise"] == 0.0
+
+
+def test_the_expert_deploy_agent_acts_as_the_recipe_on_the_ant(expert) -> None:
+    """`deploy.agents: [expert]` on an ant maze: noise-free, the oracle's direction walked by the
+    actor (the data's actions); with noise, each episode's own stream, within the bounds."""
+    _, episodes = _generate(expert, noise=0.0)
+    ep = episodes[0]
+    agent = OGBenchOracleAgent(ANT, noise=0.0, actor=load_actor(expert))
+    agent.reset(np.stack([ep.goals[0], ep.goals[0]]), seeds=[1, 2])
+    rows, states = np.array([0, 1]), ep.observations[[0, 5]]
+    got = agent.act(rows, states)
+    assert got.shape == (2, 8) and got.dtype == np.float64
+    np.testing.assert_allclose(got[0], ep.actions[0], rtol=1e-6, atol=1e-6)
+    noisy = OGBenchOracleAgent(ANT, noise=0.2, actor=load_actor(expert))
+    noisy.reset(np.stack([ep.goals[0], ep.goals[0]]), seeds=[1, 2])
+    a = noisy.act(rows, states[[0, 0]])
+    assert not np.allclose(a[0], a[1]) and np.abs(a).max() <= 1.0  # own streams, clipped
 
 
 def test_same_seed_same_data_another_seed_other_data(generated, expert) -> None:

@@ -7,7 +7,8 @@ cell one step closer to the goal cell, or of the current cell once there), plus 
 1e-6)`. The BFS is OGBench's own, called on the maze's reference env; its answer depends only on
 the two cells, so it is memoized per (cell, goal cell).
 
-The ant's oracle feeds this direction to a trained ant expert instead (issue 19).
+The ant's oracle feeds this direction to our direction-commanded ant expert instead (issue 19:
+`experts/ant/`), with Gaussian noise on its actions (OGBench's ant data: 0.2).
 """
 
 from __future__ import annotations
@@ -17,6 +18,8 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.envs.ant import expert_observation
+from pipeline.envs.ant_expert import DirectionActor
 from pipeline.envs.ogbench import check_ogbench_id, ogbench_cell, reference_env
 from pipeline.errors import UserError
 
@@ -56,20 +59,31 @@ class BFSOracle:
 
 
 class OGBenchOracleAgent:
-    """`BFSOracle` driving the point to each episode's goal, as a deploy agent (`Agent`).
+    """`BFSOracle` driving the robot to each episode's goal, as a deploy agent (`Agent`): the
+    point takes the direction as its action; the ant's `actor` walks it (observation: the ant's
+    state without x, y, then the direction).
 
-    Each episode draws its action noise from its own seed. Args: `env_id` (a point maze),
-    `noise` (action noise std), `name`.
+    Each episode draws its action noise from its own seed. Args: `env_id`, `noise` (action noise
+    std), `name`, `actor` (the ant's direction-commanded expert; ant mazes only).
     """
 
-    def __init__(self, env_id: str, noise: float = POINT_NOISE, name: str = "expert"):
+    def __init__(
+        self,
+        env_id: str,
+        noise: float = POINT_NOISE,
+        name: str = "expert",
+        actor: DirectionActor | None = None,
+    ):
         loco, _ = check_ogbench_id(env_id)
-        if loco != "point":
+        if loco not in ("point", "ant"):
+            raise UserError(f"the expert agent of {env_id} needs a {loco} policy we do not have")
+        if loco == "ant" and actor is None:
             raise UserError(
-                f"the expert agent of {env_id} needs OGBench's trained {loco} policy, which this "
-                "project does not have yet (issue 19); run deploy without the expert agent"
+                f"the expert agent of {env_id} needs the ant expert that made the data "
+                "(experts/ant/actor.safetensors: `oposm expert train ant`)"
             )
         self.oracle = BFSOracle(env_id)
+        self.actor = actor if loco == "ant" else None
         self.noise = float(noise)
         self.name = name
         self._goals = np.zeros((0, 2))
@@ -83,9 +97,21 @@ class OGBenchOracleAgent:
         raise RuntimeError("the oracle does not plan with a model (run it with replan_every=None)")
 
     def act(self, rows: np.ndarray, states: np.ndarray) -> np.ndarray:
-        return np.stack(
-            [
-                self.oracle.point_action(s[:2], self._goals[i], self.noise, self._rngs[i])
-                for i, s in zip(rows.tolist(), states, strict=True)
-            ]
+        pairs = list(zip(rows.tolist(), states, strict=True))
+        if self.actor is None:
+            return np.stack(
+                [
+                    self.oracle.point_action(s[:2], self._goals[i], self.noise, self._rngs[i])
+                    for i, s in pairs
+                ]  # fmt: skip
+            )
+        obs = np.stack(
+            [expert_observation(s, self.oracle.direction(s[:2], self._goals[i])) for i, s in pairs]
         )
+        actions = self.actor.act(obs).astype(np.float64)
+        if self.noise > 0:
+            noise = np.stack([self._rngs[i].normal(0.0, self.noise, actions.shape[1])
+                              for i, _ in pairs])  # fmt: skip
+            actions = np.clip(actions + noise, self.actor.spec.action_low,
+                              self.actor.spec.action_high)  # fmt: skip
+        return actions
