@@ -357,7 +357,11 @@ class SubgoalParams(_Section):
         0.25, gt=0, description="Grid side (m) of the graph's nodes over the goal dimensions."
     )
     reach: int = Field(
-        5, ge=1, description="Skills ahead a waypoint may be (at most the planner's horizon)."
+        2,
+        ge=1,
+        description="Skills ahead a waypoint may be (at most the planner's horizon); the goal "
+        "itself once it is this close. Skill hops count the data's longest windows, so a goal "
+        "a few hops away may still lie round a wall: keep it small.",
     )
 
 
