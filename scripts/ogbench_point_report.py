@@ -1,0 +1,127 @@
+"""results/ogbench-point.md + .json: OPOSM under OGBench's protocol on its point mazes, beside
+OGBench's published table (issue 18).
+
+Each `--run MAZE/LABEL=RUN_DIR` is one `oposm deploy` run (its `reports/deploy/report.json`) on
+OGBench's five evaluation tasks; `--command` lists the commands that produced them, in order.
+
+    uv run python scripts/ogbench_point_report.py \
+        --run "medium/OPOSM + subgoals=data/ogb/medium/runs/ogb50-subgoals" \
+        --run "medium/OPOSM (paper's planner)=data/ogb/medium/runs/ogb50-plain" \
+        --command "uv run oposm ingest -p params-ogbench-pointmaze-medium.yaml ..."
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+from pathlib import Path
+
+from pipeline.errors import UserError
+from pipeline.io import atomic_path, write_json
+from stages.results_common import read
+
+ROOT = Path(__file__).resolve().parents[1]
+TASKS = [f"ogbench-task{i}" for i in range(1, 6)]
+METHODS = ("GCBC", "GCIVL", "GCIQL", "QRL", "CRL", "HIQL")
+# OGBench's paper, navigate datasets, success % (mean +- std over 8 seeds), as quoted in the
+# project's shared REFERENCES.md.
+PUBLISHED = {
+    "medium": [(9, 6), (63, 6), (53, 8), (82, 5), (29, 7), (79, 5)],
+    "large": [(29, 6), (45, 5), (34, 3), (86, 9), (39, 7), (58, 5)],
+    "giant": [(1, 2), (0, 0), (0, 0), (68, 7), (27, 10), (46, 9)],
+}
+
+
+def collect(spec: str) -> dict:
+    """`MAZE/LABEL=RUN_DIR` -> the run's numbers per task and overall (agent oposm)."""
+    name, _, run = spec.partition("=")
+    maze, _, label = name.partition("/")
+    if not (run and label) or maze not in PUBLISHED:
+        raise UserError(
+            f"--run {spec!r}: expected MAZE/LABEL=RUN_DIR, MAZE one of {list(PUBLISHED)}"
+        )
+    path = Path(run) / "reports" / "deploy" / "report.json"
+    report = read(path)
+    try:
+        rows = report["by_agent"]["oposm"]
+    except KeyError as exc:
+        raise UserError(f"{path}: no oposm results (deploy.agents must include oposm)") from exc
+    keep = ("episodes", "successes", "success_rate", "success_ci95_low", "success_ci95_high")
+    out = {t: {k: rows[t][k] for k in keep} for t in [*TASKS, "ogbench"] if t in rows}
+    if "ogbench" not in out:
+        raise UserError(f"{path}: not a run of the ogbench tasks (deploy.tasks: [ogbench])")
+    return {"maze": maze, "label": label, "run": run, "env_id": report["env_id"],
+            "max_steps": report["max_steps"], "success_radius": report["success_radius"],
+            "wall_s": report.get("wall_s"), "tasks": out}  # fmt: skip
+
+
+def _cell(row: dict) -> str:
+    lo, hi = 100 * row["success_ci95_low"], 100 * row["success_ci95_high"]
+    return f"{100 * row['success_rate']:.0f} ({lo:.0f}-{hi:.0f})"
+
+
+def render(runs: list[dict], commands: list[str], machine: str) -> str:
+    lines = [
+        "# OGBench point mazes: OPOSM under OGBench's protocol, beside its published table",
+        "",
+        "Success (%) on OGBench's five evaluation tasks per maze (its start and goal cells with "
+        "its noise, at most 1000 steps, success within 1.0 of the goal), with 95 % Wilson "
+        "intervals; one trained model and one deploy seed per maze. Published: OGBench's paper, "
+        "navigate datasets, mean +- std over 8 seeds (REFERENCES.md). Machine: " + machine + ".",
+        "",
+        "| maze | agent | task 1 | task 2 | task 3 | task 4 | task 5 | overall | episodes |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in runs:
+        t = r["tasks"]
+        cells = [_cell(t[k]) if k in t else "–" for k in TASKS]
+        lines.append(f"| {r['maze']} | {r['label']} | " + " | ".join(cells)
+                     + f" | **{_cell(t['ogbench'])}** | {t['ogbench']['episodes']} |")  # fmt: skip
+    lines += ["", "| maze | " + " | ".join(METHODS) + " | best published |",
+              "|---|" + "---|" * (len(METHODS) + 1)]  # fmt: skip
+    for maze in dict.fromkeys(r["maze"] for r in runs):
+        published = PUBLISHED[maze]
+        best = max(range(len(METHODS)), key=lambda i: published[i][0])
+        lines.append(f"| {maze} | " + " | ".join(f"{m} +- {s}" for m, s in published)
+                     + f" | {METHODS[best]} {published[best][0]} |")  # fmt: skip
+    lines += ["", "Verdict per maze (is our best run's interval above the best published mean?):"]
+    for maze in dict.fromkeys(r["maze"] for r in runs):
+        best_pub = max(m for m, _ in PUBLISHED[maze])
+        top = max((r for r in runs if r["maze"] == maze),
+                  key=lambda r: r["tasks"]["ogbench"]["success_rate"])  # fmt: skip
+        low = 100 * top["tasks"]["ogbench"]["success_ci95_low"]
+        word = "above" if low > best_pub else "not above"
+        lines.append(f"- {maze}: {top['label']} {_cell(top['tasks']['ogbench'])} is {word} the "
+                     f"best published {best_pub} %.")  # fmt: skip
+    lines += ["", "Commands (in order):", "", "```bash", *commands, "```", ""]
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--run", action="append", default=[], help="MAZE/LABEL=RUN_DIR (repeat)")
+    parser.add_argument("--command", action="append", default=[], help="a command run (repeat)")
+    parser.add_argument("--machine", default=f"{platform.machine()} CPU, {os.cpu_count()} cores")
+    parser.add_argument("--out", type=Path, default=ROOT / "results")
+    args = parser.parse_args()
+    try:
+        runs = [collect(spec) for spec in args.run]
+        if not runs:
+            raise UserError("give at least one --run MAZE/LABEL=RUN_DIR")
+    except UserError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(1)
+    args.out.mkdir(parents=True, exist_ok=True)
+    published = {m: dict(zip(METHODS, v, strict=True)) for m, v in PUBLISHED.items()}
+    write_json(
+        args.out / "ogbench-point.json",
+        {"machine": args.machine, "runs": runs, "commands": args.command, "published": published},
+    )
+    with atomic_path(args.out / "ogbench-point.md") as tmp:
+        tmp.write_text(render(runs, args.command, args.machine))
+
+
+if __name__ == "__main__":
+    main()

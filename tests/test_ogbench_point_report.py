@@ -1,0 +1,67 @@
+"""scripts/ogbench_point_report.py: runs' deploy reports -> the table beside OGBench's, verdicts,
+and one-line errors for a wrong run."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = ROOT / "scripts/ogbench_point_report.py"
+
+
+def _rate(successes: int, n: int) -> dict:
+    from pipeline.evaluation.proportions import wilson_interval
+
+    lo, hi = wilson_interval(successes, n)
+    return {"episodes": n, "successes": successes, "success_rate": successes / n,
+            "success_ci95_low": lo, "success_ci95_high": hi}  # fmt: skip
+
+
+def _run(root: Path, successes: list[int], n: int = 50) -> Path:
+    tasks = {f"ogbench-task{i + 1}": _rate(s, n) for i, s in enumerate(successes)}
+    tasks["ogbench"] = _rate(sum(successes), n * len(successes))
+    path = root / "reports" / "deploy" / "report.json"
+    path.parent.mkdir(parents=True)
+    report = {"env_id": "pointmaze-medium-v0", "max_steps": 1000, "success_radius": 1.0,
+              "wall_s": 12.0, "by_agent": {"oposm": tasks}}  # fmt: skip
+    path.write_text(json.dumps(report))
+    return root
+
+
+def test_the_report_puts_runs_beside_ogbench_with_a_verdict(tmp_path):
+    good = _run(tmp_path / "good", [50, 50, 49, 50, 50])
+    weak = _run(tmp_path / "weak", [50, 40, 5, 45, 50])
+    out = tmp_path / "results"
+    runs = ["--run", f"medium/sub={good}", "--run", f"medium/plain={weak}"]
+    command = ["--command", "uv run oposm deploy ...", "--out", str(out)]
+    subprocess.run([sys.executable, str(SCRIPT), *runs, *command], check=True, cwd=ROOT)
+    text = (out / "ogbench-point.md").read_text()
+    assert "| medium | sub | 100 (93-100) | 100 (93-100) | 98 (90-100) |" in text
+    assert "| **100 (98-100)** | 250 |" in text  # 249 of 250
+    assert "| medium | 9 +- 6 | 63 +- 6 | 53 +- 8 | 82 +- 5 | 29 +- 7 | 79 +- 5 | QRL 82 |" in text
+    assert "- medium: sub 100 (98-100) is above the best published 82 %." in text
+    data = json.loads((out / "ogbench-point.json").read_text())
+    assert [r["label"] for r in data["runs"]] == ["sub", "plain"]
+    assert data["runs"][1]["tasks"]["ogbench-task3"]["successes"] == 5
+    assert data["published"]["giant"]["QRL"] == [68, 7]
+
+
+def test_a_run_that_is_not_of_the_ogbench_tasks_is_a_one_line_error(tmp_path):
+    root = tmp_path / "run"
+    (root / "reports" / "deploy").mkdir(parents=True)
+    (root / "reports" / "deploy" / "report.json").write_text(
+        json.dumps(
+            {
+                "env_id": "x",
+                "max_steps": 1,
+                "success_radius": 1.0,
+                "by_agent": {"oposm": {"random_goal": _rate(1, 2)}},
+            }
+        )  # fmt: skip
+    )
+    args = [sys.executable, str(SCRIPT), "--run", f"medium/x={root}", "--out", str(tmp_path / "o")]
+    got = subprocess.run(args, capture_output=True, text=True, cwd=ROOT)
+    assert got.returncode == 1
+    assert got.stderr.strip().count("\n") == 0 and "deploy.tasks: [ogbench]" in got.stderr
+    assert not (tmp_path / "o" / "ogbench-point.md").exists()
