@@ -12,6 +12,7 @@ both ran), `data/reports/deploy/episodes.json` (one row per agent and episode) a
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import time
 from dataclasses import dataclass, field
@@ -24,6 +25,7 @@ from tqdm import tqdm
 
 from pipeline.config import DeployParams, Params
 from pipeline.devices import resolve_device, torch_threads
+from pipeline.envs.ant_expert import load_actor
 from pipeline.envs.batch import BatchSim
 from pipeline.envs.disturbance import Pushes
 from pipeline.envs.expert import ExpertConfig
@@ -54,7 +56,6 @@ from pipeline.planning.settings import llp_config, planner_config
 from pipeline.planning.skills import SkillPlanner
 from pipeline.planning.subgoals import SubgoalGraph
 from pipeline.segments import Segments, load_segments
-from pipeline.sources.ogbench.expert import load_ant_expert
 from pipeline.viz.deploy import recording_name, write_episode_recording
 from pipeline.viz.overview import write_overview
 from stages.report import write_report
@@ -151,9 +152,12 @@ def _ogbench_oracle(params: Params, segments: Segments, spec: EnvSpec) -> AgentS
     if spec.loco == "ant":  # the actor that made the data walks the oracle's directions
         made_with = (segments.info.generator or {}).get("expert") or {}
         path = made_with.get("path", "experts/ant/actor.safetensors")
-        actor, provenance = load_ant_expert(path, spec)
-        info |= {"actor": str(path), "actor_sha256": provenance["sha256"]}
-        if made_with.get("sha256") not in (None, provenance["sha256"]):
+        actor = load_actor(path)
+        if (actor.spec.obs_dim, actor.spec.action_dim) != (spec.state_dim, spec.action_dim):
+            raise UserError(f"{path} does not fit {spec.env_id}'s ant; re-run `oposm ingest`")
+        digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()
+        info |= {"actor": str(path), "actor_sha256": digest}
+        if made_with.get("sha256") not in (None, digest):
             log.warning("%s is not the actor that made the data (its sha256 differs)", path)
     return AgentSetup(OGBenchOracleAgent(spec.env_id, noise, actor=actor), None, info)
 
