@@ -340,7 +340,8 @@ def test_a_recording_shows_the_waypoint_each_plan_aimed_at(tmp_path, env):
     _verify(path)
     positions = _values(path, "/plan/waypoint", "positions")
     assert np.allclose(np.concatenate(positions), maze.to_view(result.trace.plan_targets))
-    assert _values(path, "/plan/waypoint", "labels")[0] == ["waypoint"]
+    labels = [v for k in range(8) for v in _values(path, f"/legend/{k}/label", "labels")]
+    assert ["waypoint (subgoals)"] in labels
     plain = tmp_path / "plain.rrd"
     write_episode_recording(plain, _result("oposm", "corners", 5, False), env)
     assert "/plan/waypoint" not in _entities(plain)

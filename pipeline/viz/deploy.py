@@ -34,6 +34,7 @@ from pipeline.viz.maze import (
     PATH,
     PLAN,
     START,
+    WAYPOINT,
     faded,
     log_legend,
     log_maze,
@@ -238,11 +239,9 @@ def _log_plans(
             )
         earlier.append(xy[1:])
         if trace.plan_targets:  # deploy.subgoals: the waypoint this plan aimed at
-            rec.log(
-                "plan/waypoint",
-                rr.Points2D(to_view(trace.plan_targets[k][None]), radii=2.0 * radius,
-                            colors=color, labels="waypoint", draw_order=ORDER_PLAN),
-            )  # fmt: skip
+            at = to_view(trace.plan_targets[k][None])
+            rec.log("plan/waypoint", rr.Points2D(at, radii=1.6 * radius, colors=WAYPOINT,
+                                                 draw_order=ORDER_PLAN + 1))  # fmt: skip
         if np.isfinite(cost):
             rec.log("metrics/plan_cost", rr.Scalars(cost))
 
@@ -287,6 +286,8 @@ def _legend(result: EpisodeResult) -> list[tuple[str, tuple[int, ...], Any]]:
     if result.trace.plans:
         color, _, name = _plan_style(result)
         items += [(name, color, "dot"), ("earlier plans", faded(color), "dot")]
+    if result.trace.plan_targets:
+        items.append(("waypoint (subgoals)", WAYPOINT, "dot"))
     return items
 
 
