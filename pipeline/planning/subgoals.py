@@ -86,9 +86,9 @@ class SubgoalGraph:
         device: torch.device | str = "cpu",
     ) -> SubgoalGraph:
         """Graph of the train split's states and windows (positions: state dimensions `dims`)."""
-        offsets, train = segments.episode_offsets, segments.episode_split == 0
+        offsets = segments.episode_offsets
         steps = np.concatenate(
-            [np.arange(offsets[e], offsets[e + 1]) for e in np.flatnonzero(train)]
+            [np.arange(offsets[e], offsets[e + 1]) for e in segments.episodes_in("train")]
             or [np.zeros(0, np.int64)]
         )
         where = np.full(len(segments.states), -1, dtype=np.int64)  # global step -> point
@@ -104,10 +104,10 @@ class SubgoalGraph:
 
     def waypoints(self, positions: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
         """Targets `[B, G]` for agents at `positions [B, G]` heading to `goals [B, G]`."""
-        here, there = self.nearest(positions), self.nearest(goals)
+        ahead = torch.cdist(goals, self.nodes)  # [B, M]: each node's distance to each goal
+        here, there = self.nearest(positions), ahead.argmin(dim=-1)
         to_goal = self.hops[:, there].T  # [B, M]: skills from each node to each goal's node
         within = self.hops[here] <= self.reach  # [B, M]
-        ahead = torch.cdist(goals[:, None], self.nodes[None].expand(len(goals), -1, -1))[:, 0]
         score = torch.where(within, to_goal, torch.inf) + 1e-3 * ahead / (1.0 + ahead.max())
         best = score.argmin(dim=-1)
         direct = self.hops[here, there]
