@@ -31,11 +31,15 @@ export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1 MUJOCO_GL
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$OUT/gpu.txt"
 
 echo "== CUDA tests"
-timeout 150 "$PY" -m pytest -q -ra -m gpu tests/test_gpu.py 2>&1 | tee "$OUT/tests.log"
+# GPU_TESTS_K: a pytest -k filter (e.g. "training"); GPU_TABLE_ARGS: gpu_table.py arguments.
+timeout 150 "$PY" -m pytest -q -ra -m gpu tests/test_gpu.py ${GPU_TESTS_K:+-k "$GPU_TESTS_K"} 2>&1 |
+    tee "$OUT/tests.log"
 tests=${PIPESTATUS[0]}
 
 echo "== benchmarks"
-timeout 330 "$PY" bench/gpu_table.py --out "$OUT/gpu.json" 2>"$OUT/bench.log" | tee "$OUT/table.txt"
+# shellcheck disable=SC2086
+timeout 330 "$PY" bench/gpu_table.py --out "$OUT/gpu.json" ${GPU_TABLE_ARGS:-} 2>"$OUT/bench.log" |
+    tee "$OUT/table.txt"
 bench=${PIPESTATUS[0]}
 [ "$bench" -eq 0 ] || grep -A12 Traceback "$OUT/bench.log" | tail -40
 echo "tests exit $tests, benchmarks exit $bench"

@@ -31,6 +31,8 @@ TARGETS = {  # issue 16, measured on one GPU
     "oposm_table14_compiled_plans_per_s_256envs": (">=", 2000.0),
     "train_paper_compiled_windows_per_s": (">=", 50_000.0),
     "train_paper_windows_per_s": (">=", 50_000.0),
+    "train_paper_graph_windows_per_s": (">=", 50_000.0),
+    "train_paper_compiled_graph_windows_per_s": (">=", 50_000.0),
 }
 
 
@@ -38,9 +40,13 @@ def _sections(args: argparse.Namespace) -> dict[str, Callable[[], dict[str, floa
     """name -> a call returning numbers; training first (quick, no planner compile)."""
     data, device = Paths(args.data), args.device
 
-    def train(params: str, label: str, compile: bool) -> Callable[[], dict[str, float]]:
+    def train(
+        params: str, label: str, compile: bool, graph: bool = False, batch: int | None = None
+    ) -> Callable[[], dict[str, float]]:
         def run() -> dict[str, float]:
             over = [f"train.device={device}", f"train.compile={str(compile).lower()}"]
+            over += [f"train.cuda_graph={str(graph).lower()}"]
+            over += [f"train.batch_size={batch}"] if batch else []
             got = bench_train(load_params(Path(params), over), data, args.train_steps)
             return {f"train_{label}_{k}": v for k, v in got.items()}
 
@@ -58,8 +64,16 @@ def _sections(args: argparse.Namespace) -> dict[str, Callable[[], dict[str, floa
         "train_default": train("params.yaml", "default", False),
         "train_paper": train("params-paper.yaml", "paper", False),
     }
+    sections["train_paper_graph"] = train("params-paper.yaml", "paper_graph", False, True)
+    sections["train_paper_graph_b1000"] = train(
+        "params-paper.yaml", "paper_graph_b1000", False, True, 1000
+    )
+    sections["train_default_graph"] = train("params.yaml", "default_graph", False, True)
     if args.compile:
         sections["train_paper_compiled"] = train("params-paper.yaml", "paper_compiled", True)
+        sections["train_paper_compiled_graph"] = train(
+            "params-paper.yaml", "paper_compiled_graph", True, True
+        )
     for envs in args.envs:  # the one-environment numbers: the last section's (first: targets)
         sections[f"plan_{envs}envs"] = plan(envs)
     return sections
@@ -85,7 +99,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=None, help="Also write the numbers as JSON.")
     parser.add_argument("--train-steps", type=int, default=300)
     parser.add_argument("--device", default="cuda")
-    parser.add_argument("--envs", type=int, nargs="+", default=[256, 64])
+    parser.add_argument("--envs", type=int, nargs="*", default=[256, 64])
     parser.add_argument("--no-compile", dest="compile", action="store_false")
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, stream=sys.stderr)

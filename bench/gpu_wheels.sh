@@ -13,13 +13,28 @@ PY=${PYTHON:-python3}
 version() {  # the locked version of a package
     awk -v name="$1" '$0 == "name = \"" name "\"" {getline; gsub(/version = |"/, ""); print; exit}' uv.lock
 }
+# --ant: the ant chain's set instead (`bench/gpu_ant.sh`): no gymnasium-robotics (26 MB, not
+# imported there), plus OGBench, MCAP and dvclive's import closure; 33 MB. A new set replaces
+# the old one in .whl/.
+names="mujoco mujoco-core gymnasium gymnasium-robotics farama-notifications pydantic
+    pydantic-core annotated-types typing-inspection glfw pettingzoo"
+if [ "${1:-}" = --ant ]; then
+    names="${names/gymnasium-robotics/} ogbench mcap mcap-protobuf-support lz4 zstandard dvclive
+        dvc dvc-render dvc-studio-client flatten-dict funcy pytz ruamel-yaml voluptuous wcwidth
+        scmrepo diskcache dpath dvc-data dvc-http dvc-objects flufl-lock orjson atpublic pygtrie
+        sqltrie zc-lockfile platformdirs configobj"
+fi
+rm -rf .whl
 mkdir -p .whl
-for name in mujoco mujoco-core gymnasium gymnasium-robotics farama-notifications pydantic \
-    pydantic-core annotated-types typing-inspection glfw pettingzoo; do
+for name in $names; do
     v=$(version "$name")
     [ -n "$v" ] || { echo "$name is not in uv.lock"; continue; }
     "$PY" -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 \
         --implementation cp --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 \
         --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 -d .whl "$name==$v"
 done
+if [ "${1:-}" = --ant ]; then  # dvclive's git backend: its pure-Python wheel
+    "$PY" -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 \
+        --implementation py --platform any -d .whl "dulwich==$(version dulwich)"
+fi
 du -sh .whl

@@ -17,6 +17,7 @@ from pipeline.devices import auto_threads, resolve_device, torch_threads
 from pipeline.model import SkillModel, SkillModelConfig
 from pipeline.paths import Paths
 from pipeline.segments import load_segments
+from pipeline.training.cuda_graphs import CudaGraphUpdater
 from pipeline.training.data import WindowSampler
 from pipeline.training.updaters import make_updater
 
@@ -36,8 +37,9 @@ def bench_train(params: Params, paths: Paths, steps: int, warmup: int = 5) -> di
     segments = load_segments(paths.segments(params.ingest.name))
     with torch_threads(auto_threads(cfg.threads) if device.type == "cpu" else None):
         log.info(
-            "timing %d %s steps (after %d warm-up) on %s: z %d, hidden %d, batch %d",
+            "timing %d %s steps (after %d warm-up) on %s: z %d, hidden %d, batch %d%s",
             steps, cfg.method, warmup, device, cfg.z_dim, cfg.hidden, cfg.batch_size,
+            ", CUDA graphs" if cfg.cuda_graph and device.type == "cuda" else "",
         )  # fmt: skip
         out: dict[str, float] = {"load_1min_before": os.getloadavg()[0]}
         torch.manual_seed(cfg.seed)
@@ -54,9 +56,11 @@ def bench_train(params: Params, paths: Paths, steps: int, warmup: int = 5) -> di
             cfg.method, model, cfg.lr_e, cfg.lr_m, cfg.grad_clip, compile=cfg.compile
         )
         sampler = WindowSampler(segments, "train", device, cfg.seed)
-        for _ in range(warmup):
+        with FlopCounterMode(display=False) as counter:  # eager: a graph replay is not seen
             updater.step(sampler.sample(cfg.batch_size))
-        with FlopCounterMode(display=False) as counter:
+        if cfg.cuda_graph and device.type == "cuda":
+            updater = CudaGraphUpdater(updater)
+        for _ in range(warmup):  # with cuda_graph: the capture
             updater.step(sampler.sample(cfg.batch_size))
         _sync(device)
         start = time.perf_counter()

@@ -122,6 +122,12 @@ class OGBenchSourceParams(_Section):
     include_val: bool = Field(
         True, description="Also import the file's -val.npz companion, when it is there."
     )
+    workers: int = Field(
+        1,
+        ge=1,
+        description="Processes generating episodes (the data do not depend on it: each episode "
+        "is a function of its own seed).",
+    )
 
 
 class IngestParams(_Section):
@@ -237,6 +243,11 @@ class TrainParams(_Section):
         False,
         description="torch.compile each step's losses and their backward (same random draws as "
         "eager; compiling takes a minute or more on CPU: for long runs on a GPU).",
+    )
+    cuda_graph: bool = Field(
+        False,
+        description="On CUDA, replay each step as CUDA graphs (the same update, without the "
+        "host's launch overhead; single process). Ignored on CPU.",
     )
 
 

@@ -24,18 +24,19 @@ from pipeline.model import SkillModel, SkillModelConfig, save_model
 from pipeline.model.checkpoint import WEIGHTS_FILE
 from pipeline.paths import Paths
 from pipeline.segments import Segments, load_segments
+from pipeline.training.cuda_graphs import CudaGraphUpdater
 from pipeline.training.data import WindowSampler
 from pipeline.training.loop import SELECTION_CRITERIA, Budget, Callbacks, Trainer
 from pipeline.training.state import Progress, load_state, read_progress, save_state
-from pipeline.training.updaters import make_updater
+from pipeline.training.updaters import make_updater, no_reduce
 from stages.report import write_headline
 
 log = logging.getLogger(__name__)
 
 BY_CRITERION = "by"  # models/<name>/by/<criterion>/: the best checkpoint of each criterion
 
-# Params that change how long or where a run goes, not what it computes (compile: the same draws,
-# float rounding aside): a run may be resumed with new ones.
+# Params that change how long or where a run goes, not what it computes (compile, cuda_graph: the
+# same draws, float rounding aside): a run may be resumed with new ones.
 # `select` only picks which kept checkpoint is published.
 _BUDGET_KEYS = {
     "max_steps",
@@ -45,6 +46,7 @@ _BUDGET_KEYS = {
     "device",
     "threads",
     "compile",
+    "cuda_graph",
     "select",
 }
 
@@ -79,7 +81,7 @@ def _accelerator(device: str):
 
 def _grad_reducer(accelerator):
     if accelerator.num_processes == 1:
-        return lambda params: None
+        return no_reduce
 
     def reduce(params: list[torch.nn.Parameter]) -> None:
         for p in params:
@@ -141,6 +143,10 @@ def _train(
         _grad_reducer(accelerator),
         cfg.compile,
     )
+    if cfg.cuda_graph and accelerator.device.type == "cuda":
+        updater = CudaGraphUpdater(updater)
+    elif cfg.cuda_graph:
+        log.info("train.cuda_graph: no CUDA device, eager steps")
     train = WindowSampler(segments, "train", accelerator.device, seed=cfg.seed + 1000 * rank)
     val = WindowSampler(segments, "validation", accelerator.device, seed=cfg.seed)
     val_idx = val.fixed_subset(cfg.val_windows, seed=cfg.seed)

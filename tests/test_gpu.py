@@ -16,6 +16,7 @@ from pipeline.evaluation.tasks import EpisodeSpec
 from pipeline.model import SkillModel, SkillModelConfig
 from pipeline.planning import CEMConfig, GoalCost, PlannerConfig, SkillPlanner, problem_keys
 from pipeline.planning.mpc import SkillMPC
+from pipeline.training.cuda_graphs import CudaGraphUpdater
 from pipeline.training.data import WindowBatch
 from pipeline.training.losses import e_objective, m_objective, vi_objective
 from pipeline.training.updaters import EMUpdater, VIUpdater
@@ -102,6 +103,51 @@ def check_compiled_training_step_matches_eager(device: str) -> None:
             torch.testing.assert_close(c, w, rtol=1e-3, atol=1e-3)
 
 
+def check_cuda_graph_training_matches_eager(device: str) -> None:
+    """`train.cuda_graph`: EM and VI steps replayed as CUDA graphs (step 1 eager, capture on
+    step 2) draw the same skills and end at eager's weights and metrics, batch after batch;
+    a non-finite batch changes nothing."""
+    g = torch.Generator().manual_seed(6)
+    batches = [
+        WindowBatch(
+            torch.randn(32, 11, 4, generator=g).to(device),
+            torch.randn(32, 10, 2, generator=g).to(device),
+        )
+        for _ in range(5)
+    ]
+    previous = torch.backends.cudnn.allow_tf32
+    torch.backends.cudnn.allow_tf32 = False
+    try:
+        for make in (
+            lambda m: EMUpdater(m, 1e-3, 1e-3, grad_clip=1.0),
+            lambda m: VIUpdater(m, 1e-3),
+        ):
+            runs = []
+            for graphed in (False, True):
+                model = _model().to(device)
+                updater = CudaGraphUpdater(make(model)) if graphed else make(model)
+                torch.manual_seed(5)
+                metrics = [{k: v.clone() for k, v in updater.step(b).items()} for b in batches]
+                runs.append((model, metrics, updater))
+            (eager, want, _), (model, got, updater) = runs
+            assert updater._captured is not None  # it replayed graphs
+            for w, c in zip(want, got, strict=True):
+                assert w.keys() == c.keys()
+                for name in w:
+                    torch.testing.assert_close(c[name], w[name], **CLOSE, msg=name)
+            for w, c in zip(eager.parameters(), model.parameters(), strict=True):
+                torch.testing.assert_close(c, w, **CLOSE)
+            before = [p.detach().clone() for p in model.parameters()]
+            bad = WindowBatch(batches[0].states.clone(), batches[0].actions)
+            bad.states[0, 0, 0] = float("nan")
+            metrics = updater.step(bad)
+            assert not all(bool(torch.isfinite(v)) for v in metrics.values())
+            for b, p in zip(before, model.parameters(), strict=True):
+                assert torch.equal(b, p)
+    finally:
+        torch.backends.cudnn.allow_tf32 = previous
+
+
 def _chain(model: SkillModel, s0: torch.Tensor, eps: torch.Tensor) -> torch.Tensor:
     """States `[B, L + 1, sd]` of whitened skills `eps [B, L, z]` chained through the prior and
     the TAWM mean, one skill at a time, with the model's raw-unit interface."""
@@ -173,6 +219,10 @@ def test_training_objectives_gradients_and_an_em_step_on_cuda_match_cpu():
 
 def test_compiled_training_step_on_cuda_matches_eager():
     check_compiled_training_step_matches_eager("cuda")
+
+
+def test_cuda_graph_training_step_matches_eager():
+    check_cuda_graph_training_matches_eager("cuda")
 
 
 def test_skill_rollout_and_mpc_on_cuda_match_cpu():

@@ -135,6 +135,18 @@ def test_same_seed_same_data_another_seed_other_data(generated, expert) -> None:
     assert not np.array_equal(first[0].observations, other[0].observations)
 
 
+@pytest.mark.slow
+def test_episodes_generated_by_worker_processes_are_the_same_data(generated, expert) -> None:
+    _, first = generated
+    data = generate_ogbench(
+        make_recipe(ANT, "navigate", 2, STEPS, 0, None, expert), "ant", workers=2
+    )
+    for a, b in zip(first, list(data.episodes), strict=True):
+        assert a.index == b.index
+        for field in ("observations", "actions", "physics", "goals", "goal_reached", "time"):
+            np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
+
+
 @pytest.mark.parametrize("kind", ["stitch", "explore"])
 def test_stitch_and_explore_generate_for_the_ant(expert, kind) -> None:
     info, episodes = _generate(expert, kind=kind)

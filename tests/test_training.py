@@ -1,5 +1,6 @@
 """EM training on small real data: parameter groups, learning, NaN guard, resume, Accelerate."""
 
+import copy
 import json
 import os
 import signal
@@ -18,10 +19,11 @@ from safetensors.torch import load_file
 from pipeline.errors import UserError
 from pipeline.model import SkillModel, SkillModelConfig
 from pipeline.segments import build_segments, save_segments
+from pipeline.training.cuda_graphs import CudaGraphUpdater
 from pipeline.training.data import WindowSampler
 from pipeline.training.loop import Budget, Callbacks, Trainer, evaluate
 from pipeline.training.losses import prior_marginal_nll
-from pipeline.training.state import Progress
+from pipeline.training.state import Progress, _load_optimizer
 from pipeline.training.updaters import EMUpdater, VIUpdater
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -210,6 +212,35 @@ def _env():
 
 
 @pytest.mark.slow
+def test_cuda_graph_updater_refuses_a_model_off_cuda(segments):
+    with pytest.raises(UserError, match="train.cuda_graph needs the model on CUDA"):
+        CudaGraphUpdater(EMUpdater(_model(segments), 1e-3, 1e-3))
+
+
+def test_a_capturable_optimizer_state_resumes_in_an_eager_optimizer_and_steps_alike():
+    """A resume state written by a CUDA-graph run (capturable Adam) loads into eager Adam: the
+    flag stays eager's, the step count moves to the CPU, and the next step is the same."""
+    torch.manual_seed(0)
+    weights = torch.nn.Parameter(torch.randn(5))
+    first = torch.optim.Adam([weights], lr=0.1)
+    for _ in range(3):
+        first.zero_grad()
+        (weights**2).sum().backward()
+        first.step()
+    saved = copy.deepcopy(first.state_dict())  # state_dict() shares the moment tensors
+    saved["param_groups"][0]["capturable"] = True  # as a CUDA-graph run saves it
+    resumed_weights = torch.nn.Parameter(weights.detach().clone())
+    resumed = torch.optim.Adam([resumed_weights], lr=0.1)
+    _load_optimizer(resumed, saved)
+    assert resumed.param_groups[0]["capturable"] is False
+    assert resumed.state[resumed_weights]["step"].device.type == "cpu"
+    for optimizer, w in ((first, weights), (resumed, resumed_weights)):
+        optimizer.zero_grad()
+        (w**2).sum().backward()
+        optimizer.step()
+    assert torch.equal(weights, resumed_weights)
+
+
 def test_killed_run_resumes_and_ends_bit_identical_to_an_uninterrupted_one(tmp_path, segments):
     overrides = {"max_steps": 400, "eval_every": 50, "checkpoint_every": 50}
     straight = _project(tmp_path / "straight", segments, overrides)

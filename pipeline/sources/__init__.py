@@ -95,4 +95,4 @@ def open_ogbench(cfg: IngestParams, progress: bool = False) -> ImportedDataset:
     recipe = make_recipe(
         og.env_id, og.dataset_type, cfg.episodes, cfg.episode_steps, cfg.seed, og.noise, og.expert
     )
-    return generate_ogbench(recipe, cfg.name, progress)
+    return generate_ogbench(recipe, cfg.name, progress, og.workers)

@@ -20,6 +20,7 @@ from tqdm import tqdm
 
 from pipeline.errors import UserError
 from pipeline.model.skill_model import SkillModel
+from pipeline.training.cuda_graphs import CudaGraphUpdater
 from pipeline.training.data import WindowSampler
 from pipeline.training.losses import validation_metrics
 from pipeline.training.state import Progress
@@ -92,7 +93,7 @@ class Trainer:
     def __init__(
         self,
         model: SkillModel,
-        updater: EMUpdater | VIUpdater,
+        updater: EMUpdater | VIUpdater | CudaGraphUpdater,
         train: WindowSampler,
         val: WindowSampler,
         val_idx: np.ndarray,

@@ -114,7 +114,7 @@ def load_state(
         model.load_state_dict(load_file(directory / "model.safetensors", device=str(device)))
         optim = torch.load(directory / "optim.pt", weights_only=True, map_location=device)
         for name, optimizer in optimizers.items():
-            optimizer.load_state_dict(optim["optimizers"][name])
+            _load_optimizer(optimizer, optim["optimizers"][name])
         torch.set_rng_state(optim["torch_rng"].cpu())
         generator.set_state(optim["sampler_rng"].cpu())
     except (
@@ -130,3 +130,18 @@ def load_state(
     if "cuda_rng" in optim and torch.cuda.is_available():
         torch.cuda.set_rng_state_all([s.cpu() for s in optim["cuda_rng"]])
     return progress
+
+
+def _load_optimizer(optimizer: torch.optim.Optimizer, saved: dict) -> None:
+    """`load_state_dict`, keeping this optimizer's `capturable` flag (a state saved by a
+    CUDA-graph run, `train.cuda_graph`, resumes eagerly and the other way round): eager Adam
+    counts its steps on the CPU, capturable Adam on the parameters' device."""
+    capturable = [group.get("capturable", False) for group in optimizer.param_groups]
+    optimizer.load_state_dict(saved)
+    for group, flag in zip(optimizer.param_groups, capturable, strict=True):
+        group["capturable"] = flag
+        for p in group["params"]:
+            state = optimizer.state.get(p)
+            if state and "step" in state:
+                device = p.device if flag else torch.device("cpu")
+                state["step"] = state["step"].to(device, torch.float32)

@@ -16,6 +16,7 @@ With `compile` (`train.compile`) each loss, forward and backward, runs through `
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import torch
 from torch import nn
@@ -42,6 +43,25 @@ def no_reduce(params: list[nn.Parameter]) -> None:
     """Single-process training: gradients are already complete."""
 
 
+def backward(
+    loss: torch.Tensor,
+    metrics: dict[str, torch.Tensor],
+    params: list[nn.Parameter],
+    optimizer: torch.optim.Optimizer,
+    reduce_grads: GradReducer,
+    grad_clip: float | None,
+) -> torch.Tensor:
+    """Backprop `loss` into `params` only, reduce, clip; add the gradient norm to `metrics`
+    under "grad_norm"; return whether the loss, metrics and norm are all finite, as a 0-d
+    bool tensor on the device (no host read)."""
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward(inputs=params)
+    reduce_grads(params)
+    norm = torch.nn.utils.clip_grad_norm_(params, grad_clip if grad_clip else float("inf"))
+    metrics["grad_norm"] = norm.detach()
+    return torch.stack([v.reshape(()) for v in metrics.values()]).isfinite().all()
+
+
 def _apply(
     loss: torch.Tensor,
     metrics: dict[str, torch.Tensor],
@@ -50,23 +70,28 @@ def _apply(
     reduce_grads: GradReducer,
     grad_clip: float | None,
 ) -> bool:
-    """Backprop `loss` into `params` only, reduce, clip, step; add the gradient norm to
-    `metrics` under "grad_norm"; return whether everything was finite (the one host read).
+    """`backward`, then the optimizer step if everything was finite (the one host read).
 
     A non-finite loss, metric or gradient norm skips the step (the parameters and Adam moments
     stay as they were), so the loop stops on it with the model still intact.
     """
-    optimizer.zero_grad(set_to_none=True)
-    loss.backward(inputs=params)
-    reduce_grads(params)
-    norm = torch.nn.utils.clip_grad_norm_(params, grad_clip if grad_clip else float("inf"))
-    metrics["grad_norm"] = norm.detach()
-    finite = bool(torch.stack([v.reshape(()) for v in metrics.values()]).isfinite().all())
+    finite = bool(backward(loss, metrics, params, optimizer, reduce_grads, grad_clip))
     if finite:
         optimizer.step()
     else:
         optimizer.zero_grad(set_to_none=True)
     return finite
+
+
+@dataclass
+class HalfStep:
+    """One optimizer's part of an update: its loss, the parameters it moves, the optimizer, and
+    the metric name its gradient norm is reported under."""
+
+    loss: Loss
+    params: list[nn.Parameter]
+    optimizer: torch.optim.Optimizer
+    norm_name: str
 
 
 def _renamed(metrics: dict[str, torch.Tensor], norm_name: str) -> dict[str, torch.Tensor]:
@@ -98,6 +123,13 @@ class EMUpdater:
         }
         self.grad_clip = grad_clip
         self.reduce_grads = reduce_grads
+
+    def halves(self) -> list[HalfStep]:
+        """The E-step then the M-step, in the order `step` runs them."""
+        return [
+            HalfStep(self.e_loss, self.e_params, self.optimizers["e"], "e_grad_norm"),
+            HalfStep(self.m_loss, self.m_params, self.optimizers["m"], "m_grad_norm"),
+        ]
 
     def e_step(self, batch: WindowBatch) -> tuple[dict[str, torch.Tensor], bool]:
         """One Adam step on the posterior (phi) minimizing eq. 15; metrics, and whether they
@@ -141,6 +173,10 @@ class VIUpdater:
         self.optimizers = {"vi": torch.optim.Adam(self.params, lr=lr)}
         self.grad_clip = grad_clip
         self.reduce_grads = reduce_grads
+
+    def halves(self) -> list[HalfStep]:
+        """The one joint step."""
+        return [HalfStep(self.loss, self.params, self.optimizers["vi"], "grad_norm")]
 
     def step(self, batch: WindowBatch) -> dict[str, torch.Tensor]:
         """One joint step; metrics as 0-d tensors on the model's device."""
