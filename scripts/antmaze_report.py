@@ -72,16 +72,23 @@ def collect(maze: str, root: Path) -> dict:
 
 def _merged_deploys(paths: list[Path]) -> dict | None:
     """The agents of every deploy report of a maze (ad-hoc `--run`s included), each agent with
-    its own episodes per task (the same tasks and seeds: a smaller run deploys the first ones)."""
-    reports = [r for p in paths if (r := read(p))]
-    if not reports:
+    its own episodes per task (the same tasks and seeds: a smaller run deploys the first ones);
+    an agent in several reports gets one row per report, the later ones named after their run."""
+    found = [(p, r) for p in paths if (r := read(p))]
+    if not found:
         return None
-    merged = {k: v for k, v in reports[0].items() if k != "by_agent"}
+    merged = {k: v for k, v in found[0][1].items() if k != "by_agent"}
     merged["by_agent"], merged["episodes_by_agent"] = {}, {}
-    for r in reports:
+    for path, r in found:
         for agent, by_task in r["by_agent"].items():
-            merged["by_agent"][agent] = by_task
-            merged["episodes_by_agent"][agent] = r["episodes_per_task"]
+            # an agent met again (another setting, another run) is named after its run
+            name = (
+                agent
+                if agent not in merged["by_agent"]
+                else f"{agent} (run {path.parents[2].name})"
+            )
+            merged["by_agent"][name] = by_task
+            merged["episodes_by_agent"][name] = r["episodes_per_task"]
     return merged
 
 
@@ -158,6 +165,7 @@ def render(results: dict) -> str:
                 f"episodes); {ingest.get('goals_per_1000_steps', float('nan')):.1f} goals reached "
                 "per 1000 steps."
             )
+        lines += [f"- {note}" for note in r.get("notes", [])]
         if train:
             val = train["val"]
             # the skill informs the TAWM when the posterior skill's NLL is well below the prior's
@@ -249,7 +257,11 @@ def verdict(maze: str, deploy: dict | None) -> str | None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--maze", action="append", default=[], help="medium=DATA_ROOT (repeat)")
-    parser.add_argument("--commands", type=Path, help="JSON: maze -> list of commands run")
+    parser.add_argument(
+        "--commands",
+        type=Path,
+        help="JSON: maze -> the commands run (a list), or {commands: [...], notes: [...]}",
+    )
     parser.add_argument("--machine", default=f"{platform.machine()} CPU, {os.cpu_count()} cores")
     parser.add_argument("--out", type=Path, default=ROOT / "results")
     args = parser.parse_args()
@@ -269,7 +281,12 @@ def main() -> None:
     mazes = {}
     for item in args.maze:
         maze, _, root = item.partition("=")
-        mazes[maze] = collect(maze, Path(root)) | {"commands": (commands or {}).get(maze, [])}
+        run = (commands or {}).get(maze, [])  # a list of commands, or {commands, notes}
+        run = run if isinstance(run, dict) else {"commands": run}
+        mazes[maze] = collect(maze, Path(root)) | {
+            "commands": run.get("commands", []),
+            "notes": run.get("notes", []),
+        }
     results = {
         "what": "OPOSM on OGBench's ant mazes (issue 19 §3), beside OGBench's published table",
         "machine": args.machine,

@@ -70,9 +70,19 @@ def test_report_reads_a_runs_reports_and_writes_markdown_and_json(tmp_path, monk
     llp["by_agent"] = {"llp": llp["by_agent"]["oposm"]}
     (run / "runs/llp/reports/deploy").mkdir(parents=True)
     (run / "runs/llp/reports/deploy/report.json").write_text(json.dumps(llp))
+    plain = _deploy([2] * 5, n=10)  # the same agent in another setting: a row of its own
+    (run / "runs/plain/reports/deploy").mkdir(parents=True)
+    (run / "runs/plain/reports/deploy/report.json").write_text(json.dumps(plain))
     commands = tmp_path / "commands.json"
     commands.write_text(
-        json.dumps({"medium": ["oposm ingest -p params-ogbench-antmaze-medium.yaml"]})
+        json.dumps(
+            {
+                "medium": {
+                    "commands": ["oposm ingest -p params-ogbench-antmaze-medium.yaml"],
+                    "notes": ["trained on another machine"],
+                }
+            }
+        )
     )
     out = tmp_path / "results"
     monkeypatch.setattr(
@@ -94,9 +104,11 @@ def test_report_reads_a_runs_reports_and_writes_markdown_and_json(tmp_path, monk
     text = (out / "antmaze.md").read_text()
     assert "| oposm | 50 | 80 (67-89) |" in text and "| gcbc | 50 |" in text
     assert "| llp | 10 | 100 (72-100) |" in text  # an ad-hoc run's report joins the table
+    assert "| oposm (run plain) | 10 |" in text
     assert "4 episodes, 4004 steps" in text and "HIQL 96 +- 1" in text
     assert "oposm ingest -p params-ogbench-antmaze-medium.yaml" in text
     assert "Machine: test box." in text
+    assert "- trained on another machine" in text
     results = json.loads((out / "antmaze.json").read_text())
     assert results["mazes"]["medium"]["train"] is None  # not run: reported as missing, not faked
     assert "does not hold" in results["verdicts"]["medium"]
