@@ -50,6 +50,15 @@ PAPER = {
 }
 
 
+MASS_RUN = "mass"  # runs named mass<factor> (`deploy.mass_scale`): the figure-5 sweep
+# The paper's figure 5 (antmaze-large, geom density x0.2 ... x5), success as fractions.
+FIG5_FACTORS = [0.2, 0.5, 1.0, 2.0, 3.0, 4.0, 5.0]
+PAPER_FIG5 = {
+    "oposm": [35, 51, 70, 81.6, 73, 68.6, 60.7],
+    "expert": [20, 49.3, 80, 80, 89.3, 36, 0],
+}
+
+
 def _pct(rate: float | None, lo: float | None = None, hi: float | None = None) -> str:
     if rate is None:
         return "–"
@@ -63,11 +72,63 @@ def collect(maze: str, root: Path) -> dict:
     for stage in ("ingest", "segment", "dynamics", "validate"):
         out[stage] = read(reports / stage / "report.json")
     out["train"] = read(reports / "train" / "metrics.json")
-    out["deploy"] = _merged_deploys(
-        [reports / "deploy" / "report.json"]
-        + sorted((root / "runs").glob("*/reports/deploy/report.json"))
-    )
+    runs = sorted((root / "runs").glob("*/reports/deploy/report.json"))
+    mass = [p for p in runs if p.parents[2].name.startswith(MASS_RUN)]
+    others = [p for p in runs if p not in mass]
+    out["deploy"] = _merged_deploys([reports / "deploy" / "report.json"] + others)
+    out["mass_sweep"] = _mass_sweep(mass)
     return out
+
+
+def _mass_sweep(paths: list[Path]) -> dict | None:
+    """Overall success per agent and mass factor, from runs named `mass<factor>`."""
+    sweep: dict = {}
+    for path in paths:
+        r = read(path)
+        if not r:
+            continue
+        for agent, by_task in r["by_agent"].items():
+            o = by_task["ogbench"]
+            sweep.setdefault(agent, {})[str(r["mass_scale"])] = {
+                "success_rate": o["success_rate"],
+                "success_ci95_low": o["success_ci95_low"],
+                "success_ci95_high": o["success_ci95_high"],
+                "episodes": r["episodes_per_task"] * (len(r["tasks"]) - 1),
+            }
+    for agent in sweep:
+        sweep[agent] = dict(sorted(sweep[agent].items(), key=lambda kv: float(kv[0])))
+    return sweep or None
+
+
+def _mass_rows(sweep: dict) -> list[str]:
+    agents = list(sweep)
+    factors = sorted({f for a in agents for f in sweep[a]}, key=float)
+    head = " | ".join(agents) + " | paper: OPOSM (large) | paper: expert (large)"
+    rows = [f"| mass factor | {head} |", "|---" * (len(agents) + 3) + "|"]
+    for f in factors:
+        cells = []
+        for a in agents:
+            v = sweep[a].get(f)
+            cells.append(
+                _pct(v["success_rate"], v["success_ci95_low"], v["success_ci95_high"]) if v else "–"
+            )
+        i = FIG5_FACTORS.index(float(f)) if float(f) in FIG5_FACTORS else None
+        cells += [f"{PAPER_FIG5[k][i]:g}" if i is not None else "–" for k in ("oposm", "expert")]
+        rows.append(f"| x{f} | " + " | ".join(cells) + " |")
+    retained = []
+    for a in agents:
+        base = sweep[a].get("1.0", {}).get("success_rate")
+        others = [v["success_rate"] for f, v in sweep[a].items() if float(f) != 1.0]
+        if base and others:
+            retained.append(f"{a} {100 * sum(others) / len(others) / base:.0f} %")
+    if retained:
+        rows += [
+            "",
+            "Mean success over the perturbed factors as a share of the success at x1: "
+            + ", ".join(retained)
+            + ".",
+        ]
+    return rows
 
 
 def _merged_deploys(paths: list[Path]) -> dict | None:
@@ -216,6 +277,15 @@ def render(results: dict) -> str:
         row = _expert_row(expert, f"antmaze-{maze}-v0")
         if row:
             lines.append(row)
+        if r.get("mass_sweep"):
+            lines += [
+                "",
+                "Robustness to the ant's mass (paper figure 5: every body's mass and inertia times "
+                "the factor in the simulator, the models unchanged), success % (95 % Wilson "
+                "interval) over OGBench's five tasks, beside the paper's (antmaze-large):",
+                "",
+                *_mass_rows(r["mass_sweep"]),
+            ]
         lines += [
             "",
             "Published (OGBench's paper, navigate, 8 seeds): "

@@ -73,6 +73,11 @@ def test_report_reads_a_runs_reports_and_writes_markdown_and_json(tmp_path, monk
     plain = _deploy([2] * 5, n=10)  # the same agent in another setting: a row of its own
     (run / "runs/plain/reports/deploy").mkdir(parents=True)
     (run / "runs/plain/reports/deploy/report.json").write_text(json.dumps(plain))
+    for factor, successes in ((1.0, [8] * 5), (0.5, [4] * 5), (2.0, [6] * 5)):  # figure 5
+        sweep = _deploy(successes, n=10)
+        sweep["mass_scale"] = factor
+        (run / f"runs/mass{factor:g}/reports/deploy").mkdir(parents=True)
+        (run / f"runs/mass{factor:g}/reports/deploy/report.json").write_text(json.dumps(sweep))
     commands = tmp_path / "commands.json"
     commands.write_text(
         json.dumps(
@@ -108,6 +113,9 @@ def test_report_reads_a_runs_reports_and_writes_markdown_and_json(tmp_path, monk
     assert "4 episodes, 4004 steps" in text and "HIQL 96 +- 1" in text
     assert "oposm ingest -p params-ogbench-antmaze-medium.yaml" in text
     assert "Machine: test box." in text
+    assert "| x0.5 | 40 (28-54) | 40 (28-54) | 51 | 49.3 |" in text  # the sweep's own table
+    assert "oposm 62 %" in text  # (40 + 60) / 2 of 80 % at x1
+    assert "(run mass" not in text  # sweep runs stay out of the success table
     assert "- trained on another machine" in text
     results = json.loads((out / "antmaze.json").read_text())
     assert results["mazes"]["medium"]["train"] is None  # not run: reported as missing, not faked
