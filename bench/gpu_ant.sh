@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
 # The ant chain of issue 19 in one prepared GPU run (< 10 min on one H100/H200): OGBench's
-# antmaze-medium-navigate recipe with our expert (ingest, EPISODES episodes, WORKERS processes),
+# antmaze-medium-navigate recipe (PARAMS: another ant params file) with our expert (ingest,
+# EPISODES episodes, WORKERS processes),
 # segment, then EM training on CUDA with `train.cuda_graph` for MINUTES minutes. The trained
-# model, the training reports and the logs land in $OUT; validate and deploy run on the CPU
-# afterwards, with the same params and `--data` pointing at the returned folder.
+# model and the training reports land in $OUT as ant.tgz.NN, the logs beside them; validate and
+# deploy run on the CPU afterwards, with the same params and `--data` at the unpacked folder.
 #
 # Where: the device tool's machine (no network; torch with CUDA, accelerate, scipy, ... in its
 # image). What it lacks travels as wheels in .whl/: `bash bench/gpu_wheels.sh --ant` here first
@@ -22,6 +23,7 @@ EPISODES=${EPISODES:-1000}
 WORKERS=${WORKERS:-15}
 MINUTES=${MINUTES:-5}
 DEVICE=${DEVICE:-cuda}
+PARAMS=${PARAMS:-params-ogbench-antmaze-medium.yaml}   # or params-ogbench-antmaze-large.yaml
 mkdir -p "$OUT"
 if compgen -G ".whl/*.whl" >/dev/null; then
     "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
@@ -32,8 +34,8 @@ export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1 MUJOCO_GL
 if [ "$DEVICE" = cuda ]; then
     nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$OUT/gpu.txt"
 fi
-P=(-p params-ogbench-antmaze-medium.yaml --data "$DATA")
-T=(-S train.lr_e=0.0001 -S train.lr_m=0.0001 -S "train.device=$DEVICE" -S train.cuda_graph=true
+P=(-p "$PARAMS" --data "$DATA")
+T=(-S "train.device=$DEVICE" -S train.cuda_graph=true
    -S train.max_steps=1000000 -S "train.max_minutes=$MINUTES" -S train.eval_every=1000
    -S train.checkpoint_every=1000)
 stage() {  # name, then the command; its time and exit code in $OUT/times.txt
@@ -59,7 +61,10 @@ if [ "$rc" -ne 0 ] && [ "$DEVICE" = cuda ]; then  # e.g. a failed capture: eager
     stage train_eager "$PY" cli.py train "${P[@]}" "${T[@]}" -S train.cuda_graph=false
     rc=$?
 fi
-mkdir -p "$OUT/data"
-cp -r "$DATA/models" "$DATA/reports" "$OUT/data/" 2>/dev/null
-cp "$DATA"/segments/*/segments.json "$OUT/data/" 2>/dev/null
+# What comes back from the device tool is limited in file count and size: one archive of the
+# published model, the training metrics and curves, and segments.json, in 2.5 MB parts
+# (`cat ant.tgz.* | tar xz` here).
+(cd "$DATA" && tar czf - models/*/model.safetensors models/*/config.json \
+    reports/train/metrics.json reports/train/plots segments/*/segments.json 2>/dev/null) |
+    split -b 2500k -d - "$OUT/ant.tgz."
 exit $rc
