@@ -18,13 +18,13 @@ def _rate(successes: int, n: int) -> dict:
             "success_ci95_low": lo, "success_ci95_high": hi}  # fmt: skip
 
 
-def _run(root: Path, successes: list[int], n: int = 50) -> Path:
+def _run(root: Path, successes: list[int], n: int = 50, agent: str = "oposm") -> Path:
     tasks = {f"ogbench-task{i + 1}": _rate(s, n) for i, s in enumerate(successes)}
     tasks["ogbench"] = _rate(sum(successes), n * len(successes))
     path = root / "reports" / "deploy" / "report.json"
     path.parent.mkdir(parents=True)
     report = {"env_id": "pointmaze-medium-v0", "max_steps": 1000, "success_radius": 1.0,
-              "wall_s": 12.0, "by_agent": {"oposm": tasks}}  # fmt: skip
+              "wall_s": 12.0, "by_agent": {agent: tasks}}  # fmt: skip
     path.write_text(json.dumps(report))
     return root
 
@@ -32,8 +32,10 @@ def _run(root: Path, successes: list[int], n: int = 50) -> Path:
 def test_the_report_puts_runs_beside_ogbench_with_a_verdict(tmp_path):
     good = _run(tmp_path / "good", [50, 50, 49, 50, 50])
     weak = _run(tmp_path / "weak", [50, 40, 5, 45, 50])
+    gcbc = _run(tmp_path / "gcbc", [50] * 5, agent="gcbc")  # never our verdict's "best run"
     out = tmp_path / "results"
     runs = ["--run", f"medium/sub={good}", "--run", f"medium/plain={weak}"]
+    runs += ["--run", f"medium/GCBC (ours)={gcbc}"]
     command = ["--command", "uv run oposm deploy ...", "--out", str(out)]
     subprocess.run([sys.executable, str(SCRIPT), *runs, *command], check=True, cwd=ROOT)
     text = (out / "ogbench-point.md").read_text()
@@ -41,8 +43,10 @@ def test_the_report_puts_runs_beside_ogbench_with_a_verdict(tmp_path):
     assert "| **100 (98-100)** | 250 |" in text  # 249 of 250
     assert "| medium | 9 +- 6 | 63 +- 6 | 53 +- 8 | 82 +- 5 | 29 +- 7 | 79 +- 5 | QRL 82 |" in text
     assert "- medium: sub 100 (98-100) is above the best published 82 %." in text
+    assert "- medium: ours 100 (98-100), OGBench's 9 +- 6." in text
     data = json.loads((out / "ogbench-point.json").read_text())
-    assert [r["label"] for r in data["runs"]] == ["sub", "plain"]
+    assert [r["label"] for r in data["runs"]] == ["sub", "plain", "GCBC (ours)"]
+    assert data["runs"][2]["agent"] == "gcbc"
     assert data["runs"][1]["tasks"]["ogbench-task3"]["successes"] == 5
     assert data["published"]["giant"]["QRL"] == [68, 7]
 
