@@ -10,7 +10,8 @@ finite: a non-finite one skips the optimizer step, so the model stays intact.
 
 With `compile` (`train.compile`) each loss, forward and backward, runs through `torch.compile`
 (the posterior's GRU stays eager: dynamo does not trace RNNs); its random draws are eager's
-(inductor's `fallback_random`), so a compiled run samples the same skills as an eager one.
+(inductor's `fallback_random`), so a compiled run samples the same skills as an eager one. With
+`train.cuda_graph`, `cuda_graphs.CudaGraphUpdater` replays each `HalfStep` as CUDA graphs.
 """
 
 from __future__ import annotations
