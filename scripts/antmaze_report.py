@@ -115,20 +115,31 @@ def _mass_rows(sweep: dict) -> list[str]:
         i = FIG5_FACTORS.index(float(f)) if float(f) in FIG5_FACTORS else None
         cells += [f"{PAPER_FIG5[k][i]:g}" if i is not None else "–" for k in ("oposm", "expert")]
         rows.append(f"| x{f} | " + " | ".join(cells) + " |")
-    retained = []
-    for a in agents:
-        base = sweep[a].get("1.0", {}).get("success_rate")
-        others = [v["success_rate"] for f, v in sweep[a].items() if float(f) != 1.0]
-        if base and others:
-            retained.append(f"{a} {100 * sum(others) / len(others) / base:.0f} %")
-    if retained:
+    kept = {a: k for a in agents if (k := kept_share(sweep[a])) is not None}
+    if kept:
         rows += [
             "",
             "Mean success over the perturbed factors as a share of the success at x1: "
-            + ", ".join(retained)
+            + ", ".join(f"{a} {100 * k:.0f} %" for a, k in kept.items())
             + ".",
         ]
+    if "oposm" in kept and "expert" in kept:
+        gap = kept["oposm"] - kept["expert"]
+        word = "holds" if gap > 0.1 else "does not hold" if gap < -0.1 else "inconclusive"
+        rows += [
+            "",
+            "Verdict (paper figure 5: OPOSM keeps more of its success under mass changes than "
+            f"the expert policy): **{word}** (shares {100 * kept['oposm']:.0f} % vs "
+            f"{100 * kept['expert']:.0f} %; within 10 points: inconclusive).",
+        ]
     return rows
+
+
+def kept_share(by_factor: dict) -> float | None:
+    """Mean success over the factors other than x1, as a share of the success at x1."""
+    base = by_factor.get("1.0", {}).get("success_rate")
+    others = [v["success_rate"] for f, v in by_factor.items() if float(f) != 1.0]
+    return sum(others) / len(others) / base if base and others else None
 
 
 def _merged_deploys(paths: list[Path]) -> dict | None:

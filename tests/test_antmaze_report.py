@@ -76,6 +76,7 @@ def test_report_reads_a_runs_reports_and_writes_markdown_and_json(tmp_path, monk
     for factor, successes in ((1.0, [8] * 5), (0.5, [4] * 5), (2.0, [6] * 5)):  # figure 5
         sweep = _deploy(successes, n=10)
         sweep["mass_scale"] = factor
+        sweep["by_agent"]["expert"] = _deploy([8] * 5, n=10)["by_agent"]["oposm"]
         (run / f"runs/mass{factor:g}/reports/deploy").mkdir(parents=True)
         (run / f"runs/mass{factor:g}/reports/deploy/report.json").write_text(json.dumps(sweep))
     commands = tmp_path / "commands.json"
@@ -113,8 +114,9 @@ def test_report_reads_a_runs_reports_and_writes_markdown_and_json(tmp_path, monk
     assert "4 episodes, 4004 steps" in text and "HIQL 96 +- 1" in text
     assert "oposm ingest -p params-ogbench-antmaze-medium.yaml" in text
     assert "Machine: test box." in text
-    assert "| x0.5 | 40 (28-54) | 40 (28-54) | 51 | 49.3 |" in text  # the sweep's own table
-    assert "oposm 62 %" in text  # (40 + 60) / 2 of 80 % at x1
+    assert "| x0.5 | 40 (28-54) | 40 (28-54) | 80 (67-89) | 51 | 49.3 |" in text  # its table
+    assert "oposm 62 %" in text and "expert 100 %" in text  # (40 + 60) / 2 of 80 % at x1
+    assert "than the expert policy): **does not hold** (shares 62 % vs 100 %" in text
     assert "(run mass" not in text  # sweep runs stay out of the success table
     assert "- trained on another machine" in text
     results = json.loads((out / "antmaze.json").read_text())
