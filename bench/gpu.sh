@@ -20,12 +20,7 @@ cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 OUT=${OUT:-/tmp/oposm-gpu}
 mkdir -p "$OUT"
-if compgen -G ".whl/*.whl" >/dev/null; then
-    "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
-        --target /tmp/oposm-site .whl/*.whl || exit 1
-    export PYTHONPATH=/tmp/oposm-site
-fi
-export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1 MUJOCO_GL=egl
+source bench/gpu_env.sh  # the carried wheels, PYTHONPATH
 "$PY" -c "import torch, sys; sys.exit(not torch.cuda.is_available())" || {
     echo "no CUDA GPU visible to $PY"; exit 1; }
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$OUT/gpu.txt"

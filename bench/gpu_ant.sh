@@ -25,12 +25,7 @@ MINUTES=${MINUTES:-5}
 DEVICE=${DEVICE:-cuda}
 PARAMS=${PARAMS:-params-ogbench-antmaze-medium.yaml}   # or params-ogbench-antmaze-large.yaml
 mkdir -p "$OUT"
-if compgen -G ".whl/*.whl" >/dev/null; then
-    "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
-        --target /tmp/oposm-site .whl/*.whl || exit 1
-    export PYTHONPATH=/tmp/oposm-site
-fi
-export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1 MUJOCO_GL=egl
+source bench/gpu_env.sh  # the carried wheels, PYTHONPATH
 if [ "$DEVICE" = cuda ]; then
     nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$OUT/gpu.txt"
 fi

@@ -90,7 +90,7 @@ class CudaGraphUpdater:
 
     def _capture(self, batch: WindowBatch) -> None:
         self._batch = WindowBatch(batch.states.clone(), batch.actions.clone())
-        halves = self.inner.halves()
+        halves = self.inner.halves
         for half in halves:
             _make_capturable(half.optimizer)
         rng = torch.cuda.get_rng_state(self.device)

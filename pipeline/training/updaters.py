@@ -63,27 +63,6 @@ def backward(
     return torch.stack([v.reshape(()) for v in metrics.values()]).isfinite().all()
 
 
-def _apply(
-    loss: torch.Tensor,
-    metrics: dict[str, torch.Tensor],
-    params: list[nn.Parameter],
-    optimizer: torch.optim.Optimizer,
-    reduce_grads: GradReducer,
-    grad_clip: float | None,
-) -> bool:
-    """`backward`, then the optimizer step if everything was finite (the one host read).
-
-    A non-finite loss, metric or gradient norm skips the step (the parameters and Adam moments
-    stay as they were), so the loop stops on it with the model still intact.
-    """
-    finite = bool(backward(loss, metrics, params, optimizer, reduce_grads, grad_clip))
-    if finite:
-        optimizer.step()
-    else:
-        optimizer.zero_grad(set_to_none=True)
-    return finite
-
-
 @dataclass
 class HalfStep:
     """One optimizer's part of an update: its loss, the parameters it moves, the optimizer, and
@@ -95,8 +74,44 @@ class HalfStep:
     norm_name: str
 
 
-def _renamed(metrics: dict[str, torch.Tensor], norm_name: str) -> dict[str, torch.Tensor]:
-    metrics[norm_name] = metrics.pop("grad_norm")
+def apply_half(
+    half: HalfStep,
+    model: SkillModel,
+    batch: WindowBatch,
+    reduce_grads: GradReducer,
+    grad_clip: float | None,
+) -> tuple[dict[str, torch.Tensor], bool]:
+    """`half`'s loss on `batch`, `backward`, then its optimizer step if everything was finite
+    (the one host read); metrics (gradient norm under `half.norm_name`) and whether finite.
+
+    A non-finite loss, metric or gradient norm skips the step (the parameters and Adam moments
+    stay as they were), so the loop stops on it with the model still intact.
+    """
+    loss, metrics = half.loss(model, batch)
+    finite = bool(backward(loss, metrics, half.params, half.optimizer, reduce_grads, grad_clip))
+    if finite:
+        half.optimizer.step()
+    else:
+        half.optimizer.zero_grad(set_to_none=True)
+    metrics[half.norm_name] = metrics.pop("grad_norm")
+    return metrics, finite
+
+
+def apply_halves(
+    halves: list[HalfStep],
+    model: SkillModel,
+    batch: WindowBatch,
+    reduce_grads: GradReducer,
+    grad_clip: float | None,
+) -> dict[str, torch.Tensor]:
+    """The half-steps in order, stopping after a non-finite one (the loop then stops; a later
+    half would only push the NaNs on); their metrics as 0-d tensors on the model's device."""
+    metrics: dict[str, torch.Tensor] = {}
+    for half in halves:
+        half_metrics, finite = apply_half(half, model, batch, reduce_grads, grad_clip)
+        metrics |= half_metrics
+        if not finite:
+            break
     return metrics
 
 
@@ -114,47 +129,34 @@ class EMUpdater:
         compile: bool = False,
     ):
         self.model = model
-        self.e_loss = maybe_compiled(e_step_loss, compile)
-        self.m_loss = maybe_compiled(m_step_loss, compile)
-        self.e_params = list(model.posterior.parameters())
-        self.m_params = model.generative()
+        e_params = list(model.posterior.parameters())
+        m_params = model.generative()
         self.optimizers = {
-            "e": torch.optim.Adam(self.e_params, lr=lr_e),
-            "m": torch.optim.Adam(self.m_params, lr=lr_m),
+            "e": torch.optim.Adam(e_params, lr=lr_e),
+            "m": torch.optim.Adam(m_params, lr=lr_m),
         }
+        # The E-step then the M-step, in the order `step` runs them.
+        self.halves = [
+            HalfStep(maybe_compiled(e_step_loss, compile), e_params, self.optimizers["e"],
+                     "e_grad_norm"),
+            HalfStep(maybe_compiled(m_step_loss, compile), m_params, self.optimizers["m"],
+                     "m_grad_norm"),
+        ]  # fmt: skip
         self.grad_clip = grad_clip
         self.reduce_grads = reduce_grads
-
-    def halves(self) -> list[HalfStep]:
-        """The E-step then the M-step, in the order `step` runs them."""
-        return [
-            HalfStep(self.e_loss, self.e_params, self.optimizers["e"], "e_grad_norm"),
-            HalfStep(self.m_loss, self.m_params, self.optimizers["m"], "m_grad_norm"),
-        ]
 
     def e_step(self, batch: WindowBatch) -> tuple[dict[str, torch.Tensor], bool]:
         """One Adam step on the posterior (phi) minimizing eq. 15; metrics, and whether they
         were finite (else nothing changed)."""
-        loss, metrics = self.e_loss(self.model, batch)
-        finite = _apply(
-            loss, metrics, self.e_params, self.optimizers["e"], self.reduce_grads, self.grad_clip
-        )
-        return _renamed(metrics, "e_grad_norm"), finite
+        return apply_half(self.halves[0], self.model, batch, self.reduce_grads, self.grad_clip)
 
     def m_step(self, batch: WindowBatch) -> tuple[dict[str, torch.Tensor], bool]:
         """One Adam step on policy, TAWM and prior (theta, psi, omega) minimizing eq. 16."""
-        loss, metrics = self.m_loss(self.model, batch)
-        finite = _apply(
-            loss, metrics, self.m_params, self.optimizers["m"], self.reduce_grads, self.grad_clip
-        )
-        return _renamed(metrics, "m_grad_norm"), finite
+        return apply_half(self.halves[1], self.model, batch, self.reduce_grads, self.grad_clip)
 
     def step(self, batch: WindowBatch) -> dict[str, torch.Tensor]:
-        """E-step then M-step; metrics as 0-d tensors on the model's device."""
-        e_metrics, finite = self.e_step(batch)
-        if not finite:
-            return e_metrics  # diverged: the loop stops; don't push NaNs into theta, psi, omega
-        return e_metrics | self.m_step(batch)[0]
+        """E-step then M-step (not the M-step after a non-finite E-step)."""
+        return apply_halves(self.halves, self.model, batch, self.reduce_grads, self.grad_clip)
 
 
 class VIUpdater:
@@ -169,21 +171,17 @@ class VIUpdater:
         compile: bool = False,
     ):
         self.model = model
-        self.loss = maybe_compiled(vi_loss, compile)
-        self.params = [p for p in model.parameters() if p.requires_grad]
-        self.optimizers = {"vi": torch.optim.Adam(self.params, lr=lr)}
+        params = [p for p in model.parameters() if p.requires_grad]
+        self.optimizers = {"vi": torch.optim.Adam(params, lr=lr)}
+        self.halves = [  # the one joint step
+            HalfStep(maybe_compiled(vi_loss, compile), params, self.optimizers["vi"], "grad_norm")
+        ]
         self.grad_clip = grad_clip
         self.reduce_grads = reduce_grads
 
-    def halves(self) -> list[HalfStep]:
-        """The one joint step."""
-        return [HalfStep(self.loss, self.params, self.optimizers["vi"], "grad_norm")]
-
     def step(self, batch: WindowBatch) -> dict[str, torch.Tensor]:
         """One joint step; metrics as 0-d tensors on the model's device."""
-        loss, metrics = self.loss(self.model, batch)
-        _apply(loss, metrics, self.params, self.optimizers["vi"], self.reduce_grads, self.grad_clip)
-        return metrics
+        return apply_halves(self.halves, self.model, batch, self.reduce_grads, self.grad_clip)
 
 
 def make_updater(

@@ -1,0 +1,9 @@
+# Sourced by the GPU scripts (bench/gpu.sh, bench/gpu_ant.sh) from the repo root, with PY set:
+# installs the wheels carried in .whl/ (bench/gpu_wheels.sh) into /tmp/oposm-site and puts them
+# and this repo on PYTHONPATH for "$PY".
+if compgen -G ".whl/*.whl" >/dev/null; then
+    "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+        --target /tmp/oposm-site .whl/*.whl || exit 1
+    export PYTHONPATH=/tmp/oposm-site
+fi
+export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1 MUJOCO_GL=egl
