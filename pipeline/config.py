@@ -342,6 +342,13 @@ class PlannerParams(_Section):
         description="Weight of the skill-prior penalty mean(eps^2) added to the task cost "
         "(0: the paper's task cost alone).",
     )
+    skill_penalty: float = Field(
+        0.0,
+        ge=0,
+        description="Goal units (m) the cost adds per skill before the predicted state nearest "
+        "the goal, so a plan that gets there sooner wins (0: the paper's cost, indifferent to "
+        "when).",
+    )
     stop_cost: float | None = Field(
         None, gt=0, description="Stop a plan once its objective is below this; null: never."
     )

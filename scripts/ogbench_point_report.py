@@ -1,9 +1,10 @@
 """results/ogbench-point.md + .json: OPOSM under OGBench's protocol on its point mazes, beside
 OGBench's published table (issue 18).
 
-Each `--run MAZE/LABEL=RUN_DIR` is one `oposm deploy` run (its `reports/deploy/report.json`) on
-OGBench's five evaluation tasks (its agent: oposm, or the run's only agent, e.g. gcbc);
-`--command` lists the commands that produced them, in order.
+Each `--run DATASET/LABEL=RUN_DIR` is one `oposm deploy` run (its `reports/deploy/report.json`) on
+OGBench's five evaluation tasks (its agent: oposm, or the run's only agent, e.g. gcbc). DATASET is
+the maze for its navigate dataset (`medium`) or the maze and `-stitch` for its stitch dataset
+(`medium-stitch`). `--command` lists the commands that produced them, in order.
 
     uv run python scripts/ogbench_point_report.py \
         --run "medium/OPOSM + subgoals=data/ogb/medium/runs/ogb50-subgoals" \
@@ -26,22 +27,26 @@ from stages.results_common import read
 ROOT = Path(__file__).resolve().parents[1]
 TASKS = [f"ogbench-task{i}" for i in range(1, 6)]
 METHODS = ("GCBC", "GCIVL", "GCIQL", "QRL", "CRL", "HIQL")
-# OGBench's paper, navigate datasets, success % (mean +- std over 8 seeds), as quoted in the
-# project's shared REFERENCES.md.
+# OGBench's paper, success % (mean +- std over 8 seeds). Navigate datasets: as quoted in the
+# project's shared REFERENCES.md. Stitch datasets: OGBench's table as copied by later papers (its
+# navigate rows in those copies match REFERENCES.md cell for cell); not read from the paper here.
 PUBLISHED = {
     "medium": [(9, 6), (63, 6), (53, 8), (82, 5), (29, 7), (79, 5)],
     "large": [(29, 6), (45, 5), (34, 3), (86, 9), (39, 7), (58, 5)],
     "giant": [(1, 2), (0, 0), (0, 0), (68, 7), (27, 10), (46, 9)],
+    "medium-stitch": [(23, 18), (70, 14), (21, 9), (80, 12), (0, 1), (74, 6)],
+    "large-stitch": [(7, 5), (12, 6), (31, 2), (84, 15), (0, 0), (13, 6)],
+    "giant-stitch": [(0, 0), (0, 0), (0, 0), (50, 8), (0, 0), (0, 0)],
 }
 
 
 def collect(spec: str) -> dict:
-    """`MAZE/LABEL=RUN_DIR` -> the run's numbers per task and overall (agent oposm)."""
+    """`DATASET/LABEL=RUN_DIR` -> the run's numbers per task and overall (agent oposm)."""
     name, _, run = spec.partition("=")
-    maze, _, label = name.partition("/")
-    if not (run and label) or maze not in PUBLISHED:
+    dataset, _, label = name.partition("/")
+    if not (run and label) or dataset not in PUBLISHED:
         raise UserError(
-            f"--run {spec!r}: expected MAZE/LABEL=RUN_DIR, MAZE one of {list(PUBLISHED)}"
+            f"--run {spec!r}: expected DATASET/LABEL=RUN_DIR, DATASET one of {list(PUBLISHED)}"
         )
     path = Path(run) / "reports" / "deploy" / "report.json"
     report = read(path)
@@ -55,9 +60,10 @@ def collect(spec: str) -> dict:
     out = {t: {k: rows[t][k] for k in keep} for t in [*TASKS, "ogbench"] if t in rows}
     if "ogbench" not in out:
         raise UserError(f"{path}: not a run of the ogbench tasks (deploy.tasks: [ogbench])")
-    return {"maze": maze, "label": label, "agent": agent, "run": run, "env_id": report["env_id"],
-            "max_steps": report["max_steps"], "success_radius": report["success_radius"],
-            "wall_s": report.get("wall_s"), "tasks": out}  # fmt: skip
+    return {"dataset": dataset, "label": label, "agent": agent, "run": run,
+            "env_id": report["env_id"], "max_steps": report["max_steps"],
+            "success_radius": report["success_radius"], "wall_s": report.get("wall_s"),
+            "tasks": out}  # fmt: skip
 
 
 def _cell(row: dict) -> str:
@@ -71,41 +77,47 @@ def render(runs: list[dict], commands: list[str], machine: str) -> str:
         "",
         "Success (%) on OGBench's five evaluation tasks per maze (its start and goal cells with "
         "its noise, at most 1000 steps, success within 1.0 of the goal), with 95 % Wilson "
-        "intervals; one trained model and one deploy seed per maze. Published: OGBench's paper, "
-        "navigate datasets, mean +- std over 8 seeds (REFERENCES.md). Machine: " + machine + ".",
+        "intervals; one trained model and one deploy seed per dataset. Dataset: the maze alone is "
+        "its navigate dataset, `-stitch` its stitch dataset (both made with OGBench's recipe, "
+        "smaller than OGBench's files). Published: OGBench's paper, mean +- std over 8 seeds "
+        "(navigate: REFERENCES.md; stitch: OGBench's table as copied by later papers, whose "
+        "navigate rows match REFERENCES.md). Machine: " + machine + ".",
         "",
-        "| maze | agent | task 1 | task 2 | task 3 | task 4 | task 5 | overall | episodes |",
+        "| dataset | agent | task 1 | task 2 | task 3 | task 4 | task 5 | overall | episodes |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in runs:
         t = r["tasks"]
         cells = [_cell(t[k]) if k in t else "–" for k in TASKS]
-        lines.append(f"| {r['maze']} | {r['label']} | " + " | ".join(cells)
+        lines.append(f"| {r['dataset']} | {r['label']} | " + " | ".join(cells)
                      + f" | **{_cell(t['ogbench'])}** | {t['ogbench']['episodes']} |")  # fmt: skip
-    lines += ["", "| maze | " + " | ".join(METHODS) + " | best published |",
+    lines += ["", "| dataset | " + " | ".join(METHODS) + " | best published |",
               "|---|" + "---|" * (len(METHODS) + 1)]  # fmt: skip
-    for maze in dict.fromkeys(r["maze"] for r in runs):
-        published = PUBLISHED[maze]
+    for dataset in dict.fromkeys(r["dataset"] for r in runs):
+        published = PUBLISHED[dataset]
         best = max(range(len(METHODS)), key=lambda i: published[i][0])
-        lines.append(f"| {maze} | " + " | ".join(f"{m} +- {s}" for m, s in published)
+        lines.append(f"| {dataset} | " + " | ".join(f"{m} +- {s}" for m, s in published)
                      + f" | {METHODS[best]} {published[best][0]} |")  # fmt: skip
-    lines += ["", "Verdict per maze (is our best run's interval above the best published mean?):"]
-    for maze in dict.fromkeys(r["maze"] for r in runs):
-        best_pub = max(m for m, _ in PUBLISHED[maze])
-        ours = [r for r in runs if r["maze"] == maze and r["agent"] == "oposm"]
+    lines += [
+        "",
+        "Verdict per dataset (is our best run's interval above the best published mean?):",
+    ]
+    for dataset in dict.fromkeys(r["dataset"] for r in runs):
+        best_pub = max(m for m, _ in PUBLISHED[dataset])
+        ours = [r for r in runs if r["dataset"] == dataset and r["agent"] == "oposm"]
         if not ours:
             continue
         top = max(ours, key=lambda r: r["tasks"]["ogbench"]["success_rate"])
         low = 100 * top["tasks"]["ogbench"]["success_ci95_low"]
         word = "above" if low > best_pub else "not above"
-        lines.append(f"- {maze}: {top['label']} {_cell(top['tasks']['ogbench'])} is {word} the "
+        lines.append(f"- {dataset}: {top['label']} {_cell(top['tasks']['ogbench'])} is {word} the "
                      f"best published {best_pub} %.")  # fmt: skip
     checks = [r for r in runs if r["agent"] == "gcbc"]
     if checks:
         lines += ["", "Our GCBC against OGBench's (the same agent, our implementation and sizes):"]
     for r in checks:
-        mean, std = PUBLISHED[r["maze"]][METHODS.index("GCBC")]
-        lines.append(f"- {r['maze']}: ours {_cell(r['tasks']['ogbench'])}, OGBench's "
+        mean, std = PUBLISHED[r["dataset"]][METHODS.index("GCBC")]
+        lines.append(f"- {r['dataset']}: ours {_cell(r['tasks']['ogbench'])}, OGBench's "
                      f"{mean} +- {std}.")  # fmt: skip
     lines += ["", "Commands (in order):", "", "```bash", *commands, "```", ""]
     return "\n".join(lines)
@@ -113,7 +125,7 @@ def render(runs: list[dict], commands: list[str], machine: str) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--run", action="append", default=[], help="MAZE/LABEL=RUN_DIR (repeat)")
+    parser.add_argument("--run", action="append", default=[], help="DATASET/LABEL=RUN_DIR (repeat)")
     parser.add_argument("--command", action="append", default=[], help="a command run (repeat)")
     parser.add_argument("--machine", default=f"{platform.machine()} CPU, {os.cpu_count()} cores")
     parser.add_argument("--out", type=Path, default=ROOT / "results")
@@ -121,7 +133,7 @@ def main() -> None:
     try:
         runs = [collect(spec) for spec in args.run]
         if not runs:
-            raise UserError("give at least one --run MAZE/LABEL=RUN_DIR")
+            raise UserError("give at least one --run DATASET/LABEL=RUN_DIR")
     except UserError as exc:
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(1)

@@ -99,6 +99,41 @@ def test_ant_spec_steps_bit_for_bit_like_the_gymnasium_env() -> None:
     assert spec.goal_tolerance == 0.5
 
 
+class _StillAgent:
+    """Zero torques: an upright ant stays up, an upside-down one stays down."""
+
+    name = "still"
+
+    def reset(self, goals, seeds) -> None:
+        pass
+
+    def act(self, rows, states):
+        return np.zeros((len(rows), 8))
+
+
+def test_deploy_reports_the_step_an_ant_fell_at() -> None:
+    """Episodes record the first step the ant is fallen (upside down or torso out of OGBench's
+    healthy height), and the task summary counts them; an upright ant is never counted."""
+    from pipeline.evaluation.stats import task_summary
+    from pipeline.evaluation.tasks import EpisodeSpec
+
+    spec = make_env_spec("antmaze-medium-v0")
+    upright = spec.start_observation(ogbench_cell_xy((1, 1)))
+    flipped = upright.copy()
+    flipped[2], flipped[3:7] = 0.6, [0.0, 1.0, 0.0, 0.0]  # 180 degrees about x
+    assert spec.fallen(np.stack([upright, flipped])).tolist() == [False, True]
+    low = upright.copy()
+    low[2] = 0.1
+    assert spec.fallen(low[None]).tolist() == [True]
+    goal = ogbench_cell_xy((6, 6))
+    specs = [EpisodeSpec("goal", i, s, goal, i) for i, s in enumerate([upright, flipped])]
+    results, _ = run_episodes(_StillAgent(), BatchSim(spec, 2), specs, RunConfig(20, None, 0.5))
+    assert [r.fell_at for r in results] == [None, 1]
+    assert [r.to_json()["fell_at"] for r in results] == [None, 1]
+    assert task_summary(results, spec.dt)["fallen"] == 1
+    assert not hasattr(make_env_spec(POINT), "fallen")  # the point cannot fall
+
+
 def test_layout_matches_ogbench_cells_and_walls() -> None:
     """Every OGBench cell's centre falls in the layout cell of the same kind (free / wall), so
     views, tasks and checks see OGBench's maze; `ogbench_cell` inverts `ogbench_cell_xy`."""

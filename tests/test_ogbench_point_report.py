@@ -36,6 +36,8 @@ def test_the_report_puts_runs_beside_ogbench_with_a_verdict(tmp_path):
     out = tmp_path / "results"
     runs = ["--run", f"medium/sub={good}", "--run", f"medium/plain={weak}"]
     runs += ["--run", f"medium/GCBC (ours)={gcbc}"]
+    stitch = _run(tmp_path / "stitch", [40, 40, 40, 40, 40])  # 80 %: not above QRL's 80
+    runs += ["--run", f"medium-stitch/sub={stitch}"]
     command = ["--command", "uv run oposm deploy ...", "--out", str(out)]
     subprocess.run([sys.executable, str(SCRIPT), *runs, *command], check=True, cwd=ROOT)
     text = (out / "ogbench-point.md").read_text()
@@ -44,11 +46,14 @@ def test_the_report_puts_runs_beside_ogbench_with_a_verdict(tmp_path):
     assert "| medium | 9 +- 6 | 63 +- 6 | 53 +- 8 | 82 +- 5 | 29 +- 7 | 79 +- 5 | QRL 82 |" in text
     assert "- medium: sub 100 (98-100) is above the best published 82 %." in text
     assert "- medium: ours 100 (98-100), OGBench's 9 +- 6." in text
+    assert "| medium-stitch | 23 +- 18 | 70 +- 14 | 21 +- 9 | 80 +- 12 | 0 +- 1 | 74 +- 6 |" in text
+    assert "- medium-stitch: sub 80 (75-84) is not above the best published 80 %." in text
     data = json.loads((out / "ogbench-point.json").read_text())
-    assert [r["label"] for r in data["runs"]] == ["sub", "plain", "GCBC (ours)"]
-    assert data["runs"][2]["agent"] == "gcbc"
+    assert [r["label"] for r in data["runs"]] == ["sub", "plain", "GCBC (ours)", "sub"]
+    assert data["runs"][2]["agent"] == "gcbc" and data["runs"][2]["dataset"] == "medium"
     assert data["runs"][1]["tasks"]["ogbench-task3"]["successes"] == 5
     assert data["published"]["giant"]["QRL"] == [68, 7]
+    assert data["published"]["giant-stitch"]["QRL"] == [50, 8]
 
 
 def test_a_run_that_is_not_of_the_ogbench_tasks_is_a_one_line_error(tmp_path):

@@ -93,6 +93,23 @@ def test_goal_cost_is_the_distance_of_the_nearest_predicted_state():
     assert torch.allclose(cost, torch.tensor([[2.0, 0.0]]))
 
 
+def test_skill_penalty_prefers_the_plan_that_gets_there_sooner():
+    # Two candidates reach the goal exactly, after skill 1 and after skill 3 (L = 3).
+    states = torch.full((1, 2, 4, 2), 5.0)
+    states[0, 0, 1] = states[0, 1, 3] = torch.tensor([1.0, 1.0])
+    goal = torch.tensor([[1.0, 1.0]])
+    assert torch.allclose(GoalCost(goal)(states), torch.tensor([[0.0, 0.0]]))  # the paper's
+    late = GoalCost(goal, skill_penalty=0.5)
+    assert torch.allclose(late(states), torch.tensor([[0.5, 1.5]]))
+    # A nearer state later still wins when the penalty is smaller than what it gains.
+    states[0, 1, 1] = torch.tensor([1.0, 3.0])  # 2 m away after skill 1: 2.5 against 1.5
+    assert torch.allclose(late(states), torch.tensor([[0.5, 1.5]]))
+    moved = late.with_goals(torch.tensor([[5.0, 5.0]]))
+    assert moved.key == late.key == ((0, 1), 0.5)
+    with pytest.raises(ValueError, match="skill_penalty"):
+        GoalCost(goal, skill_penalty=-1.0)
+
+
 @pytest.fixture(scope="module")
 def model() -> SkillModel:
     """A small skill model with random weights and non-trivial normalization."""

@@ -39,6 +39,7 @@ import gymnasium
 import mujoco
 import numpy as np
 
+from pipeline.envs.ant import ant_fallen
 from pipeline.envs.maze import PHYSICS_SPEC
 from pipeline.errors import UserError
 
@@ -265,6 +266,11 @@ class OGBenchAntMazeSpec(OGBenchMazeSpec):
         nq = self.model.nq
         data.qpos[:] = observation[:nq]
         data.qvel[:] = observation[nq : nq + self.model.nv]
+
+    def fallen(self, observations: np.ndarray) -> np.ndarray:
+        """`[N]` bool per observation `[N, 29]`: torso outside OGBench's healthy height or upside
+        down (`ant_fallen`). A flipped ant cannot right itself; deploy reports these episodes."""
+        return ant_fallen(observations)
 
     def control_step(self, model: mujoco.MjModel, data: mujoco.MjData, action: np.ndarray) -> None:
         """`MujocoEnv.do_simulation` (ctrl = action clipped to [-1, 1], 5 MuJoCo steps,

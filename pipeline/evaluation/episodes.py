@@ -78,6 +78,8 @@ class EpisodeResult:
         steps_to_goal_gym: First step within `gym_radius`, or None.
         min_distance: Closest distance to the goal.
         final_distance: Distance at the end.
+        fell_at: First step (1-based) at which the agent had fallen (environments whose spec
+            has `fallen`, the ant), or None.
         replans: Planning calls for this episode.
         plan_seconds: Wall time of its planning: its share of each batched call (call time /
             episodes planned together).
@@ -92,6 +94,7 @@ class EpisodeResult:
     steps_to_goal_gym: int | None = None
     min_distance: float = float("inf")
     final_distance: float = float("inf")
+    fell_at: int | None = None
     replans: int = 0
     plan_seconds: float = 0.0
     error: str | None = None
@@ -118,6 +121,7 @@ class EpisodeResult:
             "steps_to_goal_gym": self.steps_to_goal_gym,
             "min_distance": self.min_distance,
             "final_distance": self.final_distance,
+            "fell_at": self.fell_at,
             "replans": self.replans,
             "plan_seconds": self.plan_seconds,
             "error": self.error,
@@ -193,11 +197,15 @@ def _step(wave: _Wave, rows: np.ndarray, actions: np.ndarray, t: int, cfg: RunCo
     stepped = np.array([i not in failed for i in rows], dtype=bool)
     wave.states[rows[stepped]] = wave.envs.observe(rows[stepped])
     goal_dims = list(wave.envs.spec.goal_dims)
+    fallen_of = getattr(wave.envs.spec, "fallen", None)  # the ant: torso down or upside down
+    fallen = np.zeros(len(wave.states), dtype=bool) if fallen_of is None else fallen_of(wave.states)
     for j, i in enumerate(rows):
         if not stepped[j]:
             continue
         result = wave.results[i]
         result.steps = t + 1
+        if fallen[i] and result.fell_at is None:
+            result.fell_at = t + 1
         result.trace.actions.append(actions[j].copy())
         result.trace.states.append(wave.states[i].copy())
         d = float(np.linalg.norm(wave.states[i, goal_dims] - wave.goals[i]))

@@ -60,6 +60,7 @@ def _task_line(task: str, t: dict[str, Any], radius: float) -> str:
         f"[95 % CI {_pct(t['success_ci95_low'])} - {_pct(t['success_ci95_high'])}] "
         f"within {radius:g} m{within}; {_pct(t['success_rate_r045'])} within 0.45 m; {reached}"
         + (f"; {t['errors']} failed episodes" if t["errors"] else "")
+        + (f"; fell in {t['fallen']}" if t.get("fallen") else "")
     )
 
 

@@ -40,7 +40,8 @@ def success_within(results: list[EpisodeResult], limit: int) -> dict:
 
 def task_summary(results: list[EpisodeResult], dt: float, limits: Sequence[int] = ()) -> dict:
     """Success (paper's and gymnasium's radius) with 95 % Wilson intervals, steps, planning time
-    per episode and errors; success within each of the shorter step `limits` as well."""
+    per episode, errors and episodes in which the agent fell (the ant); success within each of
+    the shorter step `limits` as well."""
     n = len(results)
     wins = sum(r.success for r in results)
     wins_gym = sum(r.steps_to_goal_gym is not None for r in results)
@@ -62,6 +63,7 @@ def task_summary(results: list[EpisodeResult], dt: float, limits: Sequence[int] 
         "plan_seconds_per_episode": _quantiles([r.plan_seconds for r in results]),
         "final_distance_mean": float(np.mean([r.final_distance for r in results])) if n else 0.0,
         "errors": sum(r.error is not None for r in results),
+        "fallen": sum(r.fell_at is not None for r in results),
         "within_steps": {str(k): success_within(results, k) for k in limits},
     }
 

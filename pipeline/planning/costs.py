@@ -12,26 +12,45 @@ class GoalCost:
     Sparse: one value per plan, whichever skill gets closest; no per-step reward. The current state
     s_0 is not a prediction and is left out, so every candidate is scored by where it leads.
 
+    With `skill_penalty` > 0 the distance after skill k (1..L) counts `skill_penalty * k` more:
+    of two plans that get equally close, the one that gets there sooner wins. The paper's cost
+    (0) is indifferent to when: a plan of L skills to a target one skill away may dawdle.
+
     Args:
         goals: `[B, G]` one goal per problem of the planning batch (e.g. `[x, y]`).
         dims: The state dimensions the goal is compared with (default: the first G).
+        skill_penalty: Goal units added per skill before the nearest state (0: the paper).
     """
 
-    def __init__(self, goals: torch.Tensor, dims: tuple[int, ...] | None = None):
+    def __init__(
+        self, goals: torch.Tensor, dims: tuple[int, ...] | None = None, skill_penalty: float = 0.0
+    ):
         self.goals = goals
         self.dims = tuple(dims) if dims is not None else tuple(range(goals.shape[-1]))
         if len(self.dims) != goals.shape[-1]:
             raise ValueError(f"goal has {goals.shape[-1]} dims but dims={self.dims}")
+        if skill_penalty < 0:
+            raise ValueError(f"skill_penalty must be >= 0, got {skill_penalty}")
+        self.skill_penalty = float(skill_penalty)
 
     def __call__(self, states: torch.Tensor) -> torch.Tensor:
         """Predicted `states [B, K, L + 1, sd]` (0: s_0) of the B problems -> `[B, K]`."""
         reached = _select(states[:, :, 1:], self.dims)  # [B, K, L, G]
         goal = self.goals[:, None, None, :]  # [B, 1, 1, G]
-        return torch.linalg.vector_norm(reached - goal, dim=-1).amin(dim=-1)
+        distance = torch.linalg.vector_norm(reached - goal, dim=-1)  # [B, K, L]
+        if self.skill_penalty:
+            k = torch.arange(1, distance.shape[-1] + 1, device=distance.device)
+            distance = distance + self.skill_penalty * k.to(distance.dtype)
+        return distance.amin(dim=-1)
+
+    @property
+    def key(self) -> tuple:
+        """What a captured plan depends on besides the goals' values (dims and penalty)."""
+        return (self.dims, self.skill_penalty)
 
     def with_goals(self, goals: torch.Tensor) -> GoalCost:
         """The same cost with other goals `[B', G]` (e.g. a CUDA graph's static input)."""
-        return GoalCost(goals, self.dims)
+        return GoalCost(goals, self.dims, self.skill_penalty)
 
 
 def _select(x: torch.Tensor, dims: tuple[int, ...]) -> torch.Tensor:

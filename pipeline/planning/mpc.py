@@ -90,7 +90,7 @@ class SkillMPC:
             self.targets = targets
         plan = self.planner.plan(
             s0,
-            GoalCost(targets, self.goal_dims),
+            GoalCost(targets, self.goal_dims, self.planner.config.skill_penalty),
             substream(self._plan_keys[idx], self._replans[idx]),
             init,
         )

@@ -16,6 +16,7 @@ def planner_config(p: PlannerParams) -> PlannerConfig:
         cem=CEMConfig(p.candidates, p.elites, p.iterations, p.min_std, p.stop_cost),
         init_std=p.init_std,
         prior_weight=p.prior_weight,
+        skill_penalty=p.skill_penalty,
         warm_start=p.warm_start,
         compile=p.compile,
     )

@@ -48,6 +48,8 @@ class PlannerConfig:
         cem: Population, elites, iterations, std floor and early-stop cost of the CEM.
         init_std: Std of the initial epsilon Gaussian (1: the demonstrator's skill distribution).
         prior_weight: Weight of the skill-prior penalty mean(eps^2) in the objective (0: paper).
+        skill_penalty: Goal units the MPC agent's `GoalCost` adds per skill before the nearest
+            predicted state (0: the paper's cost; `GoalCost`).
         warm_start: Start each replan from the previous plan shifted by one skill (zeros appended)
             instead of from zeros.
         compile: Run CEM iterations through `torch.compile` (and, on CUDA, replay each plan as a
@@ -58,6 +60,7 @@ class PlannerConfig:
     cem: CEMConfig = field(default_factory=CEMConfig)
     init_std: float = 1.0
     prior_weight: float = 0.0
+    skill_penalty: float = 0.0
     warm_start: bool = True
     compile: bool = False
 
@@ -241,11 +244,11 @@ class _GraphedPlan:
         self.planner = planner
         self.graph: torch.cuda.CUDAGraph | None = None
         self.out: CEMResult | None = None
-        self.dims: tuple[int, ...] | None = None
+        self.key: tuple | None = None  # the captured cost's dims and penalty
 
     def _capture(self, cost: GoalCost) -> None:
         self.goals = torch.zeros(self.size, cost.goals.shape[-1], device=self.s0.device)
-        self.dims = cost.dims
+        self.key = cost.key
         static_cost = cost.with_goals(self.goals)
 
         def search() -> CEMResult:
@@ -266,7 +269,7 @@ class _GraphedPlan:
     ) -> CEMResult:
         """Copy the inputs in, replay, copy the first `len(s0)` rows out."""
         b = len(s0)
-        if self.graph is None or self.dims != cost.dims:
+        if self.graph is None or self.key != cost.key:
             self._capture(cost)
         pad = self.size - b
         for static, value in ((self.s0, s0), (self.goals, cost.goals), (self.keys, keys),

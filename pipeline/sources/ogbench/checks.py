@@ -15,7 +15,7 @@ from collections.abc import Iterable
 import numpy as np
 
 from pipeline.dataset import DatasetInfo, Episode
-from pipeline.envs.ant import torso_up
+from pipeline.envs.ant import ANT_HEALTHY_Z, ant_fallen
 from pipeline.envs.checks import DatasetReport
 from pipeline.envs.checks import _Walls as MazeWalls  # the maze checks' wall geometry
 from pipeline.envs.ogbench import OGBenchMazeSpec
@@ -26,8 +26,6 @@ from pipeline.sources.ogbench.info import ogbench_spec
 _MAX_POINT_STEP = 1.0
 # Recorded physics must equal the observations (float32 files leave ~1e-6 of room).
 _PHYSICS_ATOL = 1e-4
-# OGBench's healthy torso height (`online-ant-v0`'s termination range), m.
-ANT_HEALTHY_Z = (0.2, 1.0)
 # The ant's torso moves at most ~0.3 m in a 0.1 s step (measured: 0.31 m at most in generated
 # navigate data, at ~1.5 m/s walking); 1 m in one step is 10 m/s, beyond any gait.
 _MAX_ANT_STEP = 1.0
@@ -136,15 +134,6 @@ def _check_point_steps(ep: Episode, report: DatasetReport, problems: list[str]) 
     report.max_step_distance = max(report.max_step_distance, jump)
     if jump > _MAX_POINT_STEP:
         problems.append(f"episode {ep.index}: the point jumps {jump:.3f} m in one step")
-
-
-def ant_fallen(observations: np.ndarray) -> np.ndarray:
-    """`[N]` bool: the ant's torso (`qpos[2]` height, `qpos[3:7]` quaternion w, x, y, z) is
-    outside the healthy height range or upside down (its z axis pointing below the horizon)."""
-    z = observations[:, 2]
-    up = torso_up(observations[:, 3:7])
-    low, high = ANT_HEALTHY_Z
-    return (z < low) | (z > high) | (up < 0.0)
 
 
 def ant_jumps(observations: np.ndarray, nq: int, dt: float) -> tuple[np.ndarray, np.ndarray]:
