@@ -20,6 +20,8 @@ from collections.abc import Iterator
 import gymnasium
 import numpy as np
 
+from pipeline.envs.ogbench import torso_up
+
 DIRECTION_ENV_ID = "online-ant-v0"
 STATE_DIM = 29  # qpos 15 + qvel 14
 EXPERT_OBS_DIM = 29  # state without x-y (27) + unit direction (2)
@@ -40,27 +42,6 @@ def make_direction_env(
 
     env = gymnasium.make(DIRECTION_ENV_ID, max_episode_steps=max_episode_steps)
     return GymXYWrapper(env, resample_interval=resample_interval)
-
-
-# OGBench's healthy torso height (`online-ant-v0`'s termination range), m.
-ANT_HEALTHY_Z = (0.2, 1.0)
-
-
-def ant_fallen(observations: np.ndarray) -> np.ndarray:
-    """`[N]` bool: the ant's torso (`qpos[2]` height, `qpos[3:7]` quaternion w, x, y, z) is
-    outside the healthy height range or upside down (its z axis pointing below the horizon)."""
-    observations = np.asarray(observations)
-    z = observations[..., 2]
-    up = torso_up(observations[..., 3:7])
-    low, high = ANT_HEALTHY_Z
-    return (z < low) | (z > high) | (up < 0.0)
-
-
-def torso_up(quat: np.ndarray) -> np.ndarray:
-    """`[...]` z component of the torso's z axis from `[..., 4]` quaternions (w, x, y, z); below 0
-    the ant is upside down. OGBench's reset noise leaves quaternions unnormalized."""
-    quat = np.asarray(quat, dtype=np.float64)
-    return 1.0 - 2.0 * (quat[..., 1] ** 2 + quat[..., 2] ** 2) / (quat**2).sum(axis=-1)
 
 
 class UpsideDownEnd(gymnasium.Wrapper):

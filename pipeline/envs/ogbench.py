@@ -39,7 +39,6 @@ import gymnasium
 import mujoco
 import numpy as np
 
-from pipeline.envs.ant import ant_fallen
 from pipeline.envs.maze import PHYSICS_SPEC
 from pipeline.errors import UserError
 
@@ -160,6 +159,27 @@ def ogbench_tasks(env_id: str) -> list[dict[str, Any]]:
         }
         for t in reference_env(env_id).unwrapped.task_infos
     ]
+
+
+# OGBench's healthy torso height (`online-ant-v0`'s termination range), m.
+ANT_HEALTHY_Z = (0.2, 1.0)
+
+
+def ant_fallen(observations: np.ndarray) -> np.ndarray:
+    """`[N]` bool: the ant's torso (`qpos[2]` height, `qpos[3:7]` quaternion w, x, y, z) is
+    outside the healthy height range or upside down (its z axis pointing below the horizon)."""
+    observations = np.asarray(observations)
+    z = observations[..., 2]
+    up = torso_up(observations[..., 3:7])
+    low, high = ANT_HEALTHY_Z
+    return (z < low) | (z > high) | (up < 0.0)
+
+
+def torso_up(quat: np.ndarray) -> np.ndarray:
+    """`[...]` z component of the torso's z axis from `[..., 4]` quaternions (w, x, y, z); below 0
+    the ant is upside down. OGBench's reset noise leaves quaternions unnormalized."""
+    quat = np.asarray(quat, dtype=np.float64)
+    return 1.0 - 2.0 * (quat[..., 1] ** 2 + quat[..., 2] ** 2) / (quat**2).sum(axis=-1)
 
 
 @dataclass(frozen=True, eq=False)

@@ -15,10 +15,9 @@ from collections.abc import Iterable
 import numpy as np
 
 from pipeline.dataset import DatasetInfo, Episode
-from pipeline.envs.ant import ANT_HEALTHY_Z, ant_fallen
 from pipeline.envs.checks import DatasetReport
 from pipeline.envs.checks import _Walls as MazeWalls  # the maze checks' wall geometry
-from pipeline.envs.ogbench import OGBenchMazeSpec
+from pipeline.envs.ogbench import ANT_HEALTHY_Z, OGBenchMazeSpec, ant_fallen
 from pipeline.sources.ogbench.info import ogbench_spec
 
 # The point's command moves it at most 0.2 m per axis a step, and a wall contact can push it a
