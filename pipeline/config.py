@@ -349,6 +349,12 @@ class PlannerParams(_Section):
         "the goal, so a plan that gets there sooner wins (0: the paper's cost, indifferent to "
         "when).",
     )
+    fall_penalty: float = Field(
+        0.0,
+        ge=0,
+        description="Goal units (m) added to a plan whose predicted states include a fallen "
+        "agent (the ant: torso down or upside down; others cannot fall). 0: the paper's cost.",
+    )
     stop_cost: float | None = Field(
         None, gt=0, description="Stop a plan once its objective is below this; null: never."
     )

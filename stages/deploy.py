@@ -97,7 +97,14 @@ def _oposm(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, devi
         log.info("subgoal graph: %d nodes (cells of %g m), reach %d skills",
                  len(subgoals.nodes), sub.cell, sub.reach)  # fmt: skip
     return AgentSetup(
-        SkillMPC(model, planner, cfg.sample_actions, spec.goal_dims, subgoals),
+        SkillMPC(
+            model,
+            planner,
+            cfg.sample_actions,
+            spec.goal_dims,
+            subgoals,
+            getattr(spec, "fallen", None),
+        ),  # fmt: skip
         cfg.replan_every or int(meta["window"]) - 1,
         {"model": str(model_dir), "model_step": meta.get("step"), **cfg.planner.model_dump()}
         | ({f"subgoals_{k}": v for k, v in cfg.subgoals.model_dump().items()} if subgoals else {}),

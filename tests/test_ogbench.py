@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 import yaml
 from factories import one_line_error
 from typer.testing import CliRunner
@@ -122,6 +123,8 @@ def test_deploy_reports_the_step_an_ant_fell_at() -> None:
     flipped = upright.copy()
     flipped[2], flipped[3:7] = 0.6, [0.0, 1.0, 0.0, 0.0]  # 180 degrees about x
     assert spec.fallen(np.stack([upright, flipped])).tolist() == [False, True]
+    both = torch.tensor(np.stack([upright, flipped]), dtype=torch.float32)[None]  # [1, 2, 29]
+    assert spec.fallen(both).tolist() == [[False, True]]  # predicted states, for the planner
     low = upright.copy()
     low[2] = 0.1
     assert spec.fallen(low[None]).tolist() == [True]

@@ -105,9 +105,27 @@ def test_skill_penalty_prefers_the_plan_that_gets_there_sooner():
     states[0, 1, 1] = torch.tensor([1.0, 3.0])  # 2 m away after skill 1: 2.5 against 1.5
     assert torch.allclose(late(states), torch.tensor([[0.5, 1.5]]))
     moved = late.with_goals(torch.tensor([[5.0, 5.0]]))
-    assert moved.key == late.key == ((0, 1), 0.5)
+    assert moved.key == late.key == ((0, 1), 0.5, 0.0, None)
     with pytest.raises(ValueError, match="skill_penalty"):
         GoalCost(goal, skill_penalty=-1.0)
+
+
+def test_fall_penalty_keeps_plans_from_predicted_falls():
+    # Candidate 0 reaches the goal but its state after skill 2 is "fallen" (dim 2 below 0).
+    states = torch.zeros(1, 2, 4, 3)
+    states[0, 0, 1, :2] = torch.tensor([1.0, 1.0])
+    states[0, 0, 2, 2] = -1.0
+    states[0, 1, 3, :2] = torch.tensor([1.0, 2.0])  # 1 m short, upright throughout
+    goal = torch.tensor([[1.0, 1.0]])
+
+    def fallen(s: torch.Tensor) -> torch.Tensor:
+        return s[..., 2] < 0
+
+    assert torch.allclose(GoalCost(goal)(states), torch.tensor([[0.0, 1.0]]))
+    cost = GoalCost(goal, fall_penalty=10.0, fallen=fallen)
+    assert torch.allclose(cost(states), torch.tensor([[10.0, 1.0]]))
+    assert cost.with_goals(goal).key == cost.key
+    assert GoalCost(goal, fall_penalty=10.0).fall_penalty == 0.0  # nothing can fall
 
 
 @pytest.fixture(scope="module")

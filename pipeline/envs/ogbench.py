@@ -165,21 +165,23 @@ def ogbench_tasks(env_id: str) -> list[dict[str, Any]]:
 ANT_HEALTHY_Z = (0.2, 1.0)
 
 
-def ant_fallen(observations: np.ndarray) -> np.ndarray:
-    """`[N]` bool: the ant's torso (`qpos[2]` height, `qpos[3:7]` quaternion w, x, y, z) is
-    outside the healthy height range or upside down (its z axis pointing below the horizon)."""
-    observations = np.asarray(observations)
+def ant_fallen(observations):
+    """`[...]` bool per ant observation `[..., 29]` (a numpy array or a torch tensor): the torso
+    (`qpos[2]` height, `qpos[3:7]` quaternion w, x, y, z) is outside the healthy height range or
+    upside down (its z axis pointing below the horizon)."""
     z = observations[..., 2]
     up = torso_up(observations[..., 3:7])
     low, high = ANT_HEALTHY_Z
     return (z < low) | (z > high) | (up < 0.0)
 
 
-def torso_up(quat: np.ndarray) -> np.ndarray:
-    """`[...]` z component of the torso's z axis from `[..., 4]` quaternions (w, x, y, z); below 0
-    the ant is upside down. OGBench's reset noise leaves quaternions unnormalized."""
-    quat = np.asarray(quat, dtype=np.float64)
-    return 1.0 - 2.0 * (quat[..., 1] ** 2 + quat[..., 2] ** 2) / (quat**2).sum(axis=-1)
+def torso_up(quat):
+    """`[...]` z component of the torso's z axis from `[..., 4]` quaternions (w, x, y, z; a numpy
+    array or a torch tensor); below 0 the ant is upside down. OGBench's reset noise leaves
+    quaternions unnormalized."""
+    if not hasattr(quat, "shape"):
+        quat = np.asarray(quat, dtype=np.float64)
+    return 1.0 - 2.0 * (quat[..., 1] ** 2 + quat[..., 2] ** 2) / (quat**2).sum(-1)
 
 
 @dataclass(frozen=True, eq=False)
@@ -287,9 +289,10 @@ class OGBenchAntMazeSpec(OGBenchMazeSpec):
         data.qpos[:] = observation[:nq]
         data.qvel[:] = observation[nq : nq + self.model.nv]
 
-    def fallen(self, observations: np.ndarray) -> np.ndarray:
-        """`[N]` bool per observation `[N, 29]`: torso outside OGBench's healthy height or upside
-        down (`ant_fallen`). A flipped ant cannot right itself; deploy reports these episodes."""
+    def fallen(self, observations):
+        """`[...]` bool per observation `[..., 29]` (numpy or torch): torso outside OGBench's
+        healthy height or upside down (`ant_fallen`). A flipped ant cannot right itself: deploy
+        reports these episodes, and `deploy.planner.fall_penalty` keeps plans from them."""
         return ant_fallen(observations)
 
     def control_step(self, model: mujoco.MjModel, data: mujoco.MjData, action: np.ndarray) -> None:

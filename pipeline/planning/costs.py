@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 
 
@@ -16,14 +18,25 @@ class GoalCost:
     of two plans that get equally close, the one that gets there sooner wins. The paper's cost
     (0) is indifferent to when: a plan of L skills to a target one skill away may dawdle.
 
+    With `fallen` (a test of predicted states, e.g. the ant's torso down or upside down) a plan
+    whose predicted states include a fallen one costs `fall_penalty` more: a flipped ant cannot
+    right itself, however near the goal it lies.
+
     Args:
         goals: `[B, G]` one goal per problem of the planning batch (e.g. `[x, y]`).
         dims: The state dimensions the goal is compared with (default: the first G).
         skill_penalty: Goal units added per skill before the nearest state (0: the paper).
+        fall_penalty: Goal units added to a plan predicted to fall (needs `fallen`).
+        fallen: `states [..., sd] -> bool [...]`, or None (the agent cannot fall).
     """
 
     def __init__(
-        self, goals: torch.Tensor, dims: tuple[int, ...] | None = None, skill_penalty: float = 0.0
+        self,
+        goals: torch.Tensor,
+        dims: tuple[int, ...] | None = None,
+        skill_penalty: float = 0.0,
+        fall_penalty: float = 0.0,
+        fallen: Callable[[torch.Tensor], torch.Tensor] | None = None,
     ):
         self.goals = goals
         self.dims = tuple(dims) if dims is not None else tuple(range(goals.shape[-1]))
@@ -32,6 +45,10 @@ class GoalCost:
         if skill_penalty < 0:
             raise ValueError(f"skill_penalty must be >= 0, got {skill_penalty}")
         self.skill_penalty = float(skill_penalty)
+        if fall_penalty < 0:
+            raise ValueError(f"fall_penalty must be >= 0, got {fall_penalty}")
+        self.fall_penalty = float(fall_penalty) if fallen is not None else 0.0
+        self.fallen = fallen
 
     def __call__(self, states: torch.Tensor) -> torch.Tensor:
         """Predicted `states [B, K, L + 1, sd]` (0: s_0) of the B problems -> `[B, K]`."""
@@ -41,16 +58,20 @@ class GoalCost:
         if self.skill_penalty:
             k = torch.arange(1, distance.shape[-1] + 1, device=distance.device)
             distance = distance + self.skill_penalty * k.to(distance.dtype)
-        return distance.amin(dim=-1)
+        cost = distance.amin(dim=-1)
+        if self.fall_penalty:
+            falls = self.fallen(states[:, :, 1:]).any(dim=-1)  # [B, K]
+            cost = cost + self.fall_penalty * falls.to(cost.dtype)
+        return cost
 
     @property
     def key(self) -> tuple:
-        """What a captured plan depends on besides the goals' values (dims and penalty)."""
-        return (self.dims, self.skill_penalty)
+        """What a captured plan depends on besides the goals' values (dims and penalties)."""
+        return (self.dims, self.skill_penalty, self.fall_penalty, self.fallen)
 
     def with_goals(self, goals: torch.Tensor) -> GoalCost:
         """The same cost with other goals `[B', G]` (e.g. a CUDA graph's static input)."""
-        return GoalCost(goals, self.dims, self.skill_penalty)
+        return GoalCost(goals, self.dims, self.skill_penalty, self.fall_penalty, self.fallen)
 
 
 def _select(x: torch.Tensor, dims: tuple[int, ...]) -> torch.Tensor:

@@ -10,7 +10,7 @@ model's device; `act` copies its actions to the host once per environment step.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import torch
@@ -33,6 +33,8 @@ class SkillMPC:
             None: the first G (`GoalCost`'s default).
         subgoals: Plan to its waypoints instead of the goal when the goal is far
             (`deploy.subgoals`); None: always to the goal (the paper).
+        fallen: Test of predicted states for a fallen agent (the environment spec's `fallen`,
+            the ant), for the planner's `fall_penalty`; None: the agent cannot fall.
     """
 
     name = "oposm"
@@ -44,8 +46,10 @@ class SkillMPC:
         sample_actions: bool = False,
         goal_dims: tuple[int, ...] | None = None,
         subgoals: SubgoalGraph | None = None,
+        fallen: Callable[[torch.Tensor], torch.Tensor] | None = None,
     ):
         self.model = model
+        self.fallen = fallen
         self.subgoals = subgoals
         self.targets: torch.Tensor | None = None  # [A, G] the last replan's waypoints, if any
         self.planner = planner
@@ -83,14 +87,14 @@ class SkillMPC:
         if self.planner.config.warm_start:
             warm = self._warm[idx, None, None]
             init = torch.where(warm, shift_plan(self._eps[idx]), torch.zeros_like(self._eps[idx]))
-        targets = self._goals[idx]
+        targets, cfg = self._goals[idx], self.planner.config
         if self.subgoals is not None:
             dims = list(self.goal_dims or range(targets.shape[-1]))
             targets = self.subgoals.waypoints(s0[:, dims], targets)
             self.targets = targets
         plan = self.planner.plan(
             s0,
-            GoalCost(targets, self.goal_dims, self.planner.config.skill_penalty),
+            GoalCost(targets, self.goal_dims, cfg.skill_penalty, cfg.fall_penalty, self.fallen),
             substream(self._plan_keys[idx], self._replans[idx]),
             init,
         )

@@ -17,6 +17,7 @@ def planner_config(p: PlannerParams) -> PlannerConfig:
         init_std=p.init_std,
         prior_weight=p.prior_weight,
         skill_penalty=p.skill_penalty,
+        fall_penalty=p.fall_penalty,
         warm_start=p.warm_start,
         compile=p.compile,
     )

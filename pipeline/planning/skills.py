@@ -50,6 +50,8 @@ class PlannerConfig:
         prior_weight: Weight of the skill-prior penalty mean(eps^2) in the objective (0: paper).
         skill_penalty: Goal units the MPC agent's `GoalCost` adds per skill before the nearest
             predicted state (0: the paper's cost; `GoalCost`).
+        fall_penalty: Goal units the MPC agent's `GoalCost` adds to a plan predicted to fall
+            (agents that can fall: the ant; 0: the paper's cost).
         warm_start: Start each replan from the previous plan shifted by one skill (zeros appended)
             instead of from zeros.
         compile: Run CEM iterations through `torch.compile` (and, on CUDA, replay each plan as a
@@ -61,6 +63,7 @@ class PlannerConfig:
     init_std: float = 1.0
     prior_weight: float = 0.0
     skill_penalty: float = 0.0
+    fall_penalty: float = 0.0
     warm_start: bool = True
     compile: bool = False
 
