@@ -146,8 +146,8 @@ def _merged_deploys(paths: list[Path]) -> dict | None:
     """The agents of every deploy report of a maze (ad-hoc `--run`s included), each agent with
     its own episodes per task (the same tasks and seeds: a smaller run deploys the first ones);
     an agent in several reports gets one row per report, the later ones named after their run."""
-    found = [(p, r) for p in paths if (r := read(p))]
-    if not found:
+    found = [(p, r) for p in paths if (r := read(p)) and "ogbench" in r.get("tasks", [])]
+    if not found:  # runs on other tasks (random_goal: choices on training-data goals) left out
         return None
     merged = {k: v for k, v in found[0][1].items() if k != "by_agent"}
     merged["by_agent"], merged["episodes_by_agent"] = {}, {}
@@ -167,7 +167,8 @@ def _merged_deploys(paths: list[Path]) -> dict | None:
 def _deploy_rows(deploy: dict) -> list[str]:
     tasks = [t for t in deploy["tasks"] if t != "ogbench"]
     names = " | ".join(t.replace("ogbench-", "") for t in tasks)
-    rows = [f"| agent | per task | {names} | overall |", "|---" * (len(tasks) + 3) + "|"]
+    head = f"| agent | per task | {names} | overall | fell |"
+    rows = [head, "|---" * (len(tasks) + 4) + "|"]
     for agent, by_task in deploy["by_agent"].items():
         cells = [
             _pct(
@@ -178,6 +179,8 @@ def _deploy_rows(deploy: dict) -> list[str]:
             for t in [*tasks, "ogbench"]
         ]
         cells[-1] = f"**{cells[-1]}**"
+        fell = by_task["ogbench"].get("fallen")  # episodes the ant fell in (newer deploys)
+        cells.append("–" if fell is None else str(fell))
         n = deploy.get("episodes_by_agent", {}).get(agent, deploy["episodes_per_task"])
         rows.append(f"| {agent} | {n} | " + " | ".join(cells) + " |")
     return rows
@@ -197,7 +200,7 @@ def _expert_row(expert: dict, env_id: str) -> str | None:
     return (
         f"| expert (noise-free, `oposm expert check`) | {n} | "
         + " | ".join(cells)
-        + f" | **{overall}** |"
+        + f" | **{overall}** | – |"
     )
 
 
@@ -282,8 +285,8 @@ def render(results: dict) -> str:
             row = _expert_row(expert, f"antmaze-{maze}-v0")
             if row:
                 lines += [
-                    "| agent | per task | task1 | task2 | task3 | task4 | task5 | overall |",
-                    "|---|---|---|---|---|---|---|---|",
+                    "| agent | per task | task1 | task2 | task3 | task4 | task5 | overall | fell |",
+                    "|---|---|---|---|---|---|---|---|---|",
                 ]
         row = _expert_row(expert, f"antmaze-{maze}-v0")
         if row:

@@ -73,6 +73,12 @@ def test_report_reads_a_runs_reports_and_writes_markdown_and_json(tmp_path, monk
     plain = _deploy([2] * 5, n=10)  # the same agent in another setting: a row of its own
     (run / "runs/plain/reports/deploy").mkdir(parents=True)
     (run / "runs/plain/reports/deploy/report.json").write_text(json.dumps(plain))
+    plain["by_agent"]["oposm"]["ogbench"]["fallen"] = 7  # a newer deploy counts falls
+    (run / "runs/plain/reports/deploy/report.json").write_text(json.dumps(plain))
+    tuning = {"tasks": ["random_goal"], "episodes_per_task": 50, "max_steps": 1000,
+              "by_agent": {"oposm": {"random_goal": _rate(40, 50)}}}  # fmt: skip
+    (run / "runs/rg/reports/deploy").mkdir(parents=True)  # a choice on training-data goals
+    (run / "runs/rg/reports/deploy/report.json").write_text(json.dumps(tuning))
     for factor, successes in ((1.0, [8] * 5), (0.5, [4] * 5), (2.0, [6] * 5)):  # figure 5
         sweep = _deploy(successes, n=10)
         sweep["mass_scale"] = factor
@@ -111,6 +117,8 @@ def test_report_reads_a_runs_reports_and_writes_markdown_and_json(tmp_path, monk
     assert "| oposm | 50 | 80 (67-89) |" in text and "| gcbc | 50 |" in text
     assert "| llp | 10 | 100 (72-100) |" in text  # an ad-hoc run's report joins the table
     assert "| oposm (run plain) | 10 |" in text
+    assert "| **20 (11-33)** | 7 |" in text and "| **84 (79-88)** | – |" in text  # fell
+    assert "(run rg)" not in text  # a run on other tasks stays out of OGBench's table
     assert "4 episodes, 4004 steps" in text and "HIQL 96 +- 1" in text
     assert "oposm ingest -p params-ogbench-antmaze-medium.yaml" in text
     assert "Machine: test box." in text
