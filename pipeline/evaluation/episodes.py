@@ -198,13 +198,13 @@ def _step(wave: _Wave, rows: np.ndarray, actions: np.ndarray, t: int, cfg: RunCo
     wave.states[rows[stepped]] = wave.envs.observe(rows[stepped])
     goal_dims = list(wave.envs.spec.goal_dims)
     fallen_of = getattr(wave.envs.spec, "fallen", None)  # the ant: torso down or upside down
-    fallen = np.zeros(len(wave.states), dtype=bool) if fallen_of is None else fallen_of(wave.states)
+    fallen = np.zeros(len(rows), dtype=bool) if fallen_of is None else fallen_of(wave.states[rows])
     for j, i in enumerate(rows):
         if not stepped[j]:
             continue
         result = wave.results[i]
         result.steps = t + 1
-        if fallen[i] and result.fell_at is None:
+        if fallen[j] and result.fell_at is None:
             result.fell_at = t + 1
         result.trace.actions.append(actions[j].copy())
         result.trace.states.append(wave.states[i].copy())
