@@ -241,6 +241,7 @@ def test_a_capturable_optimizer_state_resumes_in_an_eager_optimizer_and_steps_al
     assert torch.equal(weights, resumed_weights)
 
 
+@pytest.mark.slow  # three training processes
 def test_killed_run_resumes_and_ends_bit_identical_to_an_uninterrupted_one(tmp_path, segments):
     overrides = {"max_steps": 400, "eval_every": 50, "checkpoint_every": 50}
     straight = _project(tmp_path / "straight", segments, overrides)
