@@ -42,31 +42,102 @@ def torch_threads(threads: int | None) -> Iterator[None]:
         torch.set_num_threads(previous)
 
 
-def runnable_others(samples: int = 5, interval_s: float = 0.05) -> int | None:
-    """Other runnable threads on this machine right now (the most over a few samples of Linux's
-    /proc/loadavg, less this process); None where that file does not exist."""
+def _own_running() -> int:
+    """This process's threads that Linux counts as runnable right now (torch's workers
+    included: OpenMP threads spin between parallel regions)."""
+    running = 0
+    for task in Path("/proc/self/task").iterdir():
+        try:
+            stat = (task / "stat").read_text()
+        except OSError:  # the thread ended between listing and reading
+            continue
+        running += stat[stat.rindex(")") + 2] == "R"
+    return running
+
+
+def runnable_others(samples: int = 5, interval_s: float = 0.01) -> int | None:
+    """Runnable threads of other processes right now (the most over a few samples of Linux's
+    /proc/loadavg, less this process's runnable threads); None where /proc does not exist."""
     path = Path("/proc/loadavg")
     if not path.exists():
         return None
     most = 0
     for i in range(samples):
         running = int(path.read_text().split()[3].split("/")[0])
-        most = max(most, running - 1)  # the reading process itself is running
+        most = max(most, running - _own_running())
         if i + 1 < samples:
             time.sleep(interval_s)
     return most
 
 
+def _threads_for(others: int | None) -> int:
+    return (os.cpu_count() or 1) if others == 0 else 1
+
+
 def auto_threads(setting: int | str | None) -> int | None:
     """`train.threads`: an int as is; None: torch's default; "auto": every core when no other
-    thread is runnable as training starts (an idle machine: 2 threads train about 1.5x faster
-    than 1), else one (torch's threads on cores that others use wait on each other: 20x
-    slower). Logged either way."""
+    thread is runnable now (an idle machine: 2 threads train about 1.5x faster than 1), else one
+    (torch's threads on cores that others use wait on each other: 20x slower). Logged either
+    way. `AutoThreads` keeps the choice right while a run goes on."""
     if setting != "auto":
         return setting
     others = runnable_others()
-    threads = (os.cpu_count() or 1) if others == 0 else 1
+    threads = _threads_for(others)
     log.info(
         "torch threads: %d (%s runnable elsewhere)", threads, "?" if others is None else others
     )
     return threads
+
+
+class AutoThreads:
+    """`train.threads` for a whole run: the setting's threads from the start, and with "auto"
+    a new look every `recheck_s` seconds (`tick` once per step; it reads the clock only).
+
+    A choice made once goes stale: a run that took both cores on an idle machine ran 60x slower
+    once another job started (9 s per EM step instead of 0.15). Switching needs the same answer
+    twice in a row, so one busy moment does not flip it. Torch's CPU matmuls split rows between
+    threads, so the numbers do not depend on the thread count (`tests/test_config.py`).
+    """
+
+    def __init__(self, setting: int | str | None, recheck_s: float = 10.0, probe=None):
+        self.setting, self.recheck_s = setting, recheck_s
+        self.probe = probe if probe is not None else runnable_others
+        self.switches = 0
+        self._previous = torch.get_num_threads()
+        self._pending: int | None = None
+        self._checked = time.monotonic()
+
+    def __enter__(self) -> AutoThreads:
+        if self.setting == "auto":
+            others = self.probe()
+            threads = _threads_for(others)
+            log.info(
+                "torch threads: %d (%s runnable elsewhere); rechecked every %g s",
+                threads,
+                "?" if others is None else others,
+                self.recheck_s,
+            )
+            torch.set_num_threads(threads)
+        elif self.setting is not None:
+            torch.set_num_threads(self.setting)
+        self._checked = time.monotonic()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        torch.set_num_threads(self._previous)
+
+    def tick(self) -> None:
+        if self.setting != "auto" or time.monotonic() - self._checked < self.recheck_s:
+            return
+        others = self.probe()
+        self._checked = time.monotonic()
+        wanted, current = _threads_for(others), torch.get_num_threads()
+        if wanted == current:
+            self._pending = None
+        elif self._pending == wanted:
+            torch.set_num_threads(wanted)
+            self.switches += 1
+            self._pending = None
+            log.info("torch threads: %d -> %d (%s runnable elsewhere)", current, wanted, others)
+        else:
+            self._pending = wanted

@@ -17,7 +17,7 @@ from pathlib import Path
 import torch
 
 from pipeline.config import Params, TrainParams
-from pipeline.devices import auto_threads, resolve_device, torch_threads
+from pipeline.devices import AutoThreads, resolve_device
 from pipeline.errors import UserError
 from pipeline.io import atomic_dir, copy_dir, output_lock
 from pipeline.model import SkillModel, SkillModelConfig, save_model
@@ -113,9 +113,9 @@ def run(params: Params, paths: Paths, progress_bar: bool = True) -> Progress:
     with contextlib.ExitStack() as stack:
         if accelerator.is_main_process:  # one writer per model folder
             stack.enter_context(output_lock(paths.model(name)))
-        if accelerator.device.type == "cpu":
-            stack.enter_context(torch_threads(auto_threads(cfg.threads)))
-        return _train(params, paths, segments, segments_dir, accelerator, progress_bar)
+        threads = AutoThreads(cfg.threads if accelerator.device.type == "cpu" else None)
+        stack.enter_context(threads)
+        return _train(params, paths, segments, segments_dir, accelerator, progress_bar, threads)
 
 
 def _train(
@@ -125,6 +125,7 @@ def _train(
     segments_dir: Path,
     accelerator,
     progress_bar: bool,
+    threads: AutoThreads,
 ) -> Progress:
     cfg, name = params.train, params.ingest.name
     rank, world = accelerator.process_index, accelerator.num_processes
@@ -206,7 +207,7 @@ def _train(
         val,
         val_idx,
         budget,
-        Callbacks(log_metrics, save_best, save_resume),
+        Callbacks(log_metrics, save_best, save_resume, threads.tick),
         progress_bar=progress_bar and main,
     )
     progress = trainer.fit(progress)

@@ -1,6 +1,8 @@
+import time
 from pathlib import Path
 
 import pytest
+import torch
 
 from pipeline.config import Params, load_params
 from pipeline.errors import UserError
@@ -115,3 +117,73 @@ def test_auto_threads_use_every_core_only_on_an_idle_machine(monkeypatch):
     monkeypatch.setattr(devices, "runnable_others", lambda: 2)
     assert devices.auto_threads("auto") == 1
     assert devices.auto_threads(3) == 3 and devices.auto_threads(None) is None
+
+
+def test_auto_threads_follow_other_jobs_during_a_run_after_two_equal_looks(monkeypatch):
+    """A run that started alone gives up the second core once another job runs (two looks in
+    a row), and takes it back once that job ends; fixed settings are never changed."""
+    import os
+
+    from pipeline import devices
+
+    cores = os.cpu_count() or 1
+    seen = iter([0, 1, 0, 1, 1, 0, 0])
+    previous = torch.get_num_threads()
+    with devices.AutoThreads("auto", recheck_s=0.0, probe=lambda: next(seen)) as threads:
+        assert torch.get_num_threads() == cores
+        threads.tick()  # 1 other: not yet
+        assert torch.get_num_threads() == cores
+        threads.tick()  # 0: the pending switch is dropped
+        threads.tick()
+        threads.tick()  # 1, 1: switch
+        assert torch.get_num_threads() == 1
+        threads.tick()
+        threads.tick()  # 0, 0: back
+        assert torch.get_num_threads() == cores
+        assert threads.switches == (2 if cores > 1 else 0)
+    assert torch.get_num_threads() == previous
+    with devices.AutoThreads(1, recheck_s=0.0, probe=lambda: 0) as threads:
+        threads.tick()
+        threads.tick()
+        assert torch.get_num_threads() == 1
+
+
+def test_runnable_others_sees_a_busy_process_and_not_this_ones_threads():
+    import subprocess
+    import sys
+
+    from pipeline import devices
+
+    assert devices._own_running() >= 1  # the reading thread itself
+    busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        time.sleep(0.3)
+        assert devices.runnable_others(samples=10) >= 1
+    finally:
+        busy.kill()
+        busy.wait()
+
+
+def test_training_numbers_do_not_depend_on_the_thread_count():
+    """What lets `AutoThreads` switch mid-run: an EM step gives the same bits on 1 and 2 threads."""
+    from pipeline.model import SkillModel, SkillModelConfig
+    from pipeline.training.data import WindowBatch
+    from pipeline.training.updaters import EMUpdater
+
+    previous = torch.get_num_threads()
+    results = []
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            torch.manual_seed(0)
+            model = SkillModel(SkillModelConfig(4, 2, z_dim=16, hidden=128))
+            updater = EMUpdater(model, lr_e=1e-3, lr_m=1e-3)
+            generator = torch.Generator().manual_seed(1)
+            states = torch.randn(64, 11, 4, generator=generator)
+            actions = torch.randn(64, 10, 2, generator=generator)
+            for _ in range(2):
+                updater.step(WindowBatch(states, actions))
+            results.append([p.detach().clone() for p in model.parameters()])
+    finally:
+        torch.set_num_threads(previous)
+    assert all(torch.equal(a, b) for a, b in zip(*results, strict=True))

@@ -61,11 +61,13 @@ class Callbacks:
         save_best: `(criterion, progress, metrics)` when the validation metric `criterion`
             (one of `SELECTION_CRITERIA`) reached a new minimum.
         save_state: `(progress)` to write the resume state.
+        each_step: `()` after every update (cheap: e.g. `AutoThreads.tick`).
     """
 
     log: Callable[[int, dict[str, float]], None]
     save_best: Callable[[str, Progress, dict[str, float]], None]
     save_state: Callable[[Progress], None]
+    each_step: Callable[[], None] = lambda: None
 
 
 @torch.no_grad()
@@ -160,6 +162,7 @@ class Trainer:
                 for k, v in zip(metrics, values, strict=True):
                     sums[k] = sums[k] + v if k in sums else v
                 bar.update(1)
+                self.callbacks.each_step()
                 if progress.step % b.eval_every == 0:
                     self._validate(progress, sums, n)
                     bar.set_postfix(val_st_nll=f"{progress.best_of('st_nll')[1]:.3f}")
