@@ -364,6 +364,11 @@ class PlannerParams(_Section):
         description="torch.compile the CEM iterations and, on CUDA, replay each plan as a CUDA "
         "graph (the eager plans up to rounding; minutes of compilation on a small CPU).",
     )
+    dtype: Literal["float32", "bfloat16"] = Field(
+        "float32",
+        description="What the prior and TAWM multiply in during the search: bfloat16 is about "
+        "twice as fast on CPUs with AVX512-BF16 and on GPUs (states stay float32).",
+    )
 
     @model_validator(mode="after")
     def _elites_fit(self) -> PlannerParams:

@@ -241,6 +241,29 @@ def test_planner_nets_equal_the_models_prior_and_tawm_mean(model):
     )
 
 
+def test_bfloat16_planner_nets_and_plans_stay_near_float32(model):
+    """`deploy.planner.dtype: bfloat16`: the networks within bf16 rounding of the model, float32
+    out; a plan as good as the float32 one on the same problems."""
+    nets = PlannerNets(model, torch.bfloat16)
+    s, z = torch.randn(64, 4), torch.randn(64, 3)
+    mean, std = nets.prior(s)
+    assert mean.dtype == std.dtype == torch.float32
+    for ours, theirs in zip((mean, std), model.prior(s), strict=True):
+        torch.testing.assert_close(ours, theirs, rtol=3e-2, atol=3e-2)
+    exact = model.tawm(torch.cat([s, z], -1))[0]
+    torch.testing.assert_close(nets.tawm_mean(s, z), exact, rtol=3e-2, atol=3e-2)
+    assert not torch.equal(nets.tawm_mean(s, z), exact)  # it really ran in bf16
+    s0, goals = torch.randn(6, 4), torch.randn(6, 2)
+    keys = problem_keys(range(6), "cpu")
+    costs = {}
+    for dtype in ("float32", "bfloat16"):
+        config = PlannerConfig(3, CEMConfig(64, 8, 6), dtype=dtype)
+        plan = SkillPlanner(model, config).plan(s0, GoalCost(goals), keys)
+        assert plan.states.dtype == torch.float32
+        costs[dtype] = plan.cost
+    assert costs["bfloat16"].mean() <= 1.1 * costs["float32"].mean() + 0.02
+
+
 @pytest.mark.slow
 def test_compiled_planner_gives_the_eager_plans(model):
     s0, goals = torch.randn(3, 4), torch.randn(3, 2)

@@ -20,6 +20,7 @@ def planner_config(p: PlannerParams) -> PlannerConfig:
         fall_penalty=p.fall_penalty,
         warm_start=p.warm_start,
         compile=p.compile,
+        dtype=p.dtype,
     )
 
 
