@@ -4,10 +4,11 @@ paper's procedure, one environment at a time), and of LLP's low-level planner.
 
 Configurations: OPOSM with `deploy.planner` ("oposm") and the paper's table 14 ("oposm_table14":
 L 10, K 100, N_keep 50, N_iters 100), each as the batched planner, the same compiled
-(`--compiled`: `torch.compile`, CUDA graphs on GPU) and the reference; LLP with `deploy.llp`
-("llp": the paper code's L 20, K 100, keep 20 %, 5 iterations) and its timing figure's L 400,
-100 iterations ("llp_figure", one environment only). LLP is timed when its models exist
-(`oposm dynamics`, `oposm bc`).
+(`--compiled`: `torch.compile`, CUDA graphs on GPU) and the reference; both batched planners in
+`deploy.planner.dtype` (the reference always multiplies in float32, as the paper); LLP with
+`deploy.llp` ("llp": the paper code's L 20, K 100, keep 20 %, 5 iterations) and its timing
+figure's L 400, 100 iterations ("llp_figure", one environment only). LLP is timed when its
+models exist (`oposm dynamics`, `oposm bc`).
 
 All configurations run in one process on the same threads, interleaved (repeat r of every
 configuration before repeat r + 1 of any), so a change in machine load hits them alike; compare
@@ -70,7 +71,9 @@ def _planners(params: Params, paths: Paths, device: torch.device, compiled: bool
     cfg, name = params.deploy, params.ingest.name
     model, _ = load_model(paths.existing(paths.model(name)), device=device)
     default = replace(planner_config(cfg.planner), compile=False)
-    table14 = PlannerConfig(10, CEMConfig(100, 50, 100, stop_cost=cfg.planner.stop_cost))
+    table14 = PlannerConfig(  # the paper's CEM numbers, our arithmetic (deploy.planner.dtype)
+        10, CEMConfig(100, 50, 100, stop_cost=cfg.planner.stop_cost), dtype=default.dtype
+    )
     out = {}
     for label, config in (("oposm", default), ("oposm_table14", table14)):
         out[label] = (SkillPlanner(model, config), True)
