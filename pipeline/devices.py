@@ -6,7 +6,7 @@ import contextlib
 import logging
 import os
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import torch
@@ -74,14 +74,17 @@ def _threads_for(others: int | None) -> int:
     return (os.cpu_count() or 1) if others == 0 else 1
 
 
-def auto_threads(setting: int | str | None) -> int | None:
+def auto_threads(
+    setting: int | str | None, probe: Callable[[], int | None] | None = None
+) -> int | None:
     """`train.threads`: an int as is; None: torch's default; "auto": every core when no other
-    thread is runnable now (an idle machine: 2 threads train about 1.5x faster than 1), else one
-    (torch's threads on cores that others use wait on each other: 20x slower). Logged either
-    way. `AutoThreads` keeps the choice right while a run goes on."""
+    thread is runnable now (`probe`, default `runnable_others`; an idle machine: 2 threads train
+    about 1.5x faster than 1), else one (torch's threads on cores that others use wait on each
+    other: 20x slower). Logged either way. `AutoThreads` keeps the choice right while a run goes
+    on."""
     if setting != "auto":
         return setting
-    others = runnable_others()
+    others = (probe or runnable_others)()
     threads = _threads_for(others)
     log.info(
         "torch threads: %d (%s runnable elsewhere)", threads, "?" if others is None else others
@@ -99,27 +102,23 @@ class AutoThreads:
     threads, so the numbers do not depend on the thread count (`tests/test_config.py`).
     """
 
-    def __init__(self, setting: int | str | None, recheck_s: float = 10.0, probe=None):
+    def __init__(
+        self,
+        setting: int | str | None,
+        recheck_s: float = 10.0,
+        probe: Callable[[], int | None] | None = None,
+    ):
         self.setting, self.recheck_s = setting, recheck_s
-        self.probe = probe if probe is not None else runnable_others
+        self.probe = probe or runnable_others
         self.switches = 0
         self._previous = torch.get_num_threads()
         self._pending: int | None = None
         self._checked = time.monotonic()
 
     def __enter__(self) -> AutoThreads:
-        if self.setting == "auto":
-            others = self.probe()
-            threads = _threads_for(others)
-            log.info(
-                "torch threads: %d (%s runnable elsewhere); rechecked every %g s",
-                threads,
-                "?" if others is None else others,
-                self.recheck_s,
-            )
+        threads = auto_threads(self.setting, self.probe)
+        if threads is not None:
             torch.set_num_threads(threads)
-        elif self.setting is not None:
-            torch.set_num_threads(self.setting)
         self._checked = time.monotonic()
         return self
 
