@@ -392,6 +392,11 @@ class SubgoalParams(_Section):
         "itself once it is this close. Skill hops count the data's longest windows, so a goal "
         "a few hops away may still lie round a wall: keep it small.",
     )
+    line_of_sight: bool = Field(
+        False,
+        description="Aim at the goal, or at a waypoint, only when the straight line to it crosses "
+        "cells the data visits (no wall between), else at the best waypoint in sight.",
+    )
 
 
 class LLPParams(_Section):

@@ -348,6 +348,12 @@ def main() -> None:
     )
     parser.add_argument("--machine", default=f"{platform.machine()} CPU, {os.cpu_count()} cores")
     parser.add_argument("--out", type=Path, default=ROOT / "results")
+    parser.add_argument(
+        "--keep",
+        action="store_true",
+        help="keep the mazes of the existing OUT/antmaze.json that no --maze names (their data "
+        "roots may be gone) and update only those given",
+    )
     args = parser.parse_args()
     actor = read(ROOT / "experts" / "ant" / "actor.json") or {}
     info = actor.get("info", {})
@@ -362,7 +368,8 @@ def main() -> None:
         "quality": info.get("quality", {}),
     }
     commands = read(args.commands) if args.commands else {}
-    mazes = {}
+    previous = read(args.out / "antmaze.json") if args.keep else None
+    mazes = dict((previous or {}).get("mazes", {}))
     for item in args.maze:
         maze, _, root = item.partition("=")
         run = (commands or {}).get(maze, [])  # a list of commands, or {commands, notes}

@@ -93,7 +93,9 @@ def _oposm(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, devi
     subgoals = None
     if cfg.subgoals.enabled:
         sub = cfg.subgoals
-        subgoals = SubgoalGraph.from_segments(segments, spec.goal_dims, sub.cell, sub.reach, device)
+        subgoals = SubgoalGraph.from_segments(
+            segments, spec.goal_dims, sub.cell, sub.reach, device, sub.line_of_sight
+        )
         log.info("subgoal graph: %d nodes (cells of %g m), reach %d skills",
                  len(subgoals.nodes), sub.cell, sub.reach)  # fmt: skip
     return AgentSetup(

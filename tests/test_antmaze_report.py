@@ -2,6 +2,7 @@
 
 import importlib.util
 import json
+import shutil
 import sys
 from pathlib import Path
 
@@ -130,6 +131,18 @@ def test_report_reads_a_runs_reports_and_writes_markdown_and_json(tmp_path, monk
     results = json.loads((out / "antmaze.json").read_text())
     assert results["mazes"]["medium"]["train"] is None  # not run: reported as missing, not faked
     assert "does not hold" in results["verdicts"]["medium"]
+    # --keep: a second maze joins; the first stays as it was, even with its data root gone.
+    shutil.move(run, tmp_path / "gone")
+    (tmp_path / "gone" / "reports" / "ingest").rename(tmp_path / "gone" / "reports" / "x")
+    monkeypatch.setattr(sys, "argv", ["x", "--maze", f"large={tmp_path / 'gone'}", "--keep",
+                                      "--out", str(out), "--machine", "test box"])  # fmt: skip
+    _module().main()
+    results = json.loads((out / "antmaze.json").read_text())
+    assert set(results["mazes"]) == {"medium", "large"}
+    assert results["mazes"]["medium"]["ingest"]["steps"] == 4004  # kept from the first run
+    assert results["mazes"]["large"]["ingest"] is None
+    assert set(results["verdicts"]) == {"medium", "large"}
+    assert "4 episodes, 4004 steps" in (out / "antmaze.md").read_text()
 
 
 def test_a_corrupt_report_is_a_one_line_error_naming_it(tmp_path):

@@ -107,3 +107,47 @@ def test_episodes_with_subgoals_record_one_waypoint_per_replan():
     assert result.replans == 4 and len(trace.plan_targets) == 4
     first_target = trace.plan_targets[0]
     assert -2.5 < first_target[0] < 0.0 and abs(first_target[1] - 2.5) < 0.1  # 1 skill ahead
+
+
+def _l_room(step: float = 0.1) -> np.ndarray:
+    """Positions along an L round a wall block: right along y = 0 from x = 0 to 2, then up x = 2
+    to y = 2, there and back. The block [0, 1.75) x [0.25, 2] is never visited."""
+    right = np.stack([np.arange(21) * step, np.zeros(21)], axis=1)
+    up = np.stack([np.full(20, 2.0), np.arange(1, 21) * step], axis=1)
+    path = np.concatenate([right, up])
+    return np.concatenate([path, path[::-1]])
+
+
+def test_line_of_sight_takes_the_corner_when_the_goal_within_reach_is_behind_a_wall():
+    points = _l_room()
+    first = np.arange(len(points) - 10)
+    plain, sighted = (
+        SubgoalGraph.from_windows(points, first, first + 10, cell=0.25, reach=4, line_of_sight=s)
+        for s in (False, True)
+    )
+    start, goal = torch.tensor([[0.0, 0.0]]), torch.tensor([[2.0, 2.0]])
+    # Four skills of 1 m apart: within reach, so the plain rule aims through the wall.
+    assert plain.hops[plain.nearest(start), plain.nearest(goal)].item() == 4
+    torch.testing.assert_close(plain.waypoints(start, goal), goal)
+    # In sight of the start: along y = 0 only; the best of those nodes is at the corner.
+    x, y = sighted.waypoints(start, goal)[0].tolist()
+    assert 1.6 < x < 2.1 and abs(y) < 0.2
+    # From the corner the goal is in sight: the goal itself.
+    torch.testing.assert_close(sighted.waypoints(torch.tensor([[2.0, 0.1]]), goal), goal)
+    # The line test itself: along the corridor clear, across the block not, outside the grid not.
+    a = torch.tensor([[0.0, 0.0], [0.0, 0.0], [2.0, 0.0]])
+    b = torch.tensor([[2.0, 0.0], [2.0, 2.0], [5.0, 0.0]])
+    assert sighted.sight.clear(a, b).tolist() == [True, False, False]
+
+
+def test_line_of_sight_changes_nothing_in_the_open():
+    points = np.stack(np.meshgrid(np.arange(0, 3, 0.1), np.arange(0, 3, 0.1)), -1).reshape(-1, 2)
+    first = np.arange(len(points) - 30)
+    plain, sighted = (
+        SubgoalGraph.from_windows(points, first, first + 30, cell=0.5, reach=1, line_of_sight=s)
+        for s in (False, True)
+    )
+    gen = torch.Generator().manual_seed(0)
+    positions, goals = (torch.rand(64, 2, generator=gen) * 2.9 for _ in range(2))
+    want = plain.waypoints(positions, goals)
+    torch.testing.assert_close(sighted.waypoints(positions, goals), want)

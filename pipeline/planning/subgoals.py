@@ -16,6 +16,12 @@ graph gives the planner a nearer target that leads round.
   - Otherwise the target is the node within `reach` skills of the agent's node that is fewest
     skills from the goal's node; among equals, the one nearest the goal.
   - The agent's and the goal's nodes are the nearest ones in the goal dimensions.
+- **Line of sight** (`line_of_sight`): a goal two skills away may still lie round a wall, and a
+  waypoint too (results/ogbench-point.md, large-stitch task 2). With it, a straight line counts as
+  clear when every grid cell it crosses is one the data visits (walls are never visited). The goal
+  is then the target only when it is within `reach` and in sight of the agent (or in the agent's
+  own node), and the waypoint is the best node in sight of the agent's node, when one is fewer
+  skills from the goal than the agent's node; otherwise the rule above.
 
 Only the offline data is used: no maze layout and no simulator. This resembles "search on the
 replay buffer" (Eysenbach et al., 2019), with the data's own skills as edges.
@@ -40,12 +46,29 @@ class SubgoalGraph:
         reach: Skills ahead a waypoint may be (at most the plan's L).
     """
 
-    def __init__(self, nodes: np.ndarray, hops: np.ndarray, reach: int, device: torch.device):
+    def __init__(
+        self,
+        nodes: np.ndarray,
+        hops: np.ndarray,
+        reach: int,
+        device: torch.device,
+        sight: Occupancy | None = None,
+    ):
         if reach < 1:
             raise ValueError(f"reach must be >= 1, got {reach}")
         self.nodes = torch.as_tensor(nodes, dtype=torch.float32, device=device)
         self.hops = torch.as_tensor(hops, dtype=torch.float32, device=device)
         self.reach = reach
+        self.sight = sight
+        self.visible = None  # [M, M]: node pairs within reach with a clear line between them
+        if sight is not None:
+            pairs = torch.nonzero(self.hops <= reach)
+            clear = torch.cat([
+                sight.clear(self.nodes[chunk[:, 0]], self.nodes[chunk[:, 1]])
+                for chunk in pairs.split(4096)
+            ])  # fmt: skip
+            self.visible = torch.zeros_like(self.hops, dtype=torch.bool)
+            self.visible[pairs[:, 0], pairs[:, 1]] = clear
 
     @classmethod
     def from_windows(
@@ -56,6 +79,7 @@ class SubgoalGraph:
         cell: float,
         reach: int,
         device: torch.device | str = "cpu",
+        line_of_sight: bool = False,
     ) -> SubgoalGraph:
         """Graph of the positions `points [N, G]` the data visits and its windows, each from
         point `first[w]` to point `last[w]` (`[W]` indices into `points`)."""
@@ -74,7 +98,8 @@ class SubgoalGraph:
         keep = a != b
         adjacency = coo_matrix((np.ones(int(keep.sum())), (a[keep], b[keep])), shape=(m, m))
         hops = shortest_path(adjacency.tocsr(), method="D", directed=False, unweighted=True)
-        return cls(nodes, hops, reach, torch.device(device))
+        sight = Occupancy(cells, cell, torch.device(device)) if line_of_sight else None
+        return cls(nodes, hops, reach, torch.device(device), sight)
 
     @classmethod
     def from_segments(
@@ -84,6 +109,7 @@ class SubgoalGraph:
         cell: float,
         reach: int,
         device: torch.device | str = "cpu",
+        line_of_sight: bool = False,
     ) -> SubgoalGraph:
         """Graph of the train split's states and windows (positions: state dimensions `dims`)."""
         offsets = segments.episode_offsets
@@ -96,7 +122,7 @@ class SubgoalGraph:
         starts = segments.starts["train"]
         points = segments.states[steps][:, list(dims)].astype(np.float64)
         first, last = where[starts], where[starts + segments.window - 1]
-        return cls.from_windows(points, first, last, cell, reach, device)
+        return cls.from_windows(points, first, last, cell, reach, device, line_of_sight)
 
     def nearest(self, positions: torch.Tensor) -> torch.Tensor:
         """`[B]` index of the node nearest each of `positions [B, G]`."""
@@ -108,8 +134,48 @@ class SubgoalGraph:
         here, there = self.nearest(positions), ahead.argmin(dim=-1)
         to_goal = self.hops[:, there].T  # [B, M]: skills from each node to each goal's node
         within = self.hops[here] <= self.reach  # [B, M]
-        score = torch.where(within, to_goal, torch.inf) + 1e-3 * ahead / (1.0 + ahead.max())
-        best = score.argmin(dim=-1)
+        tie = 1e-3 * ahead / (1.0 + ahead.max())
+        best = (torch.where(within, to_goal, torch.inf) + tie).argmin(dim=-1)
         direct = self.hops[here, there]
         use_goal = (direct <= self.reach) | ~torch.isfinite(direct)
+        if self.sight is not None:
+            seen = within & self.visible[here]
+            best_seen = (torch.where(seen, to_goal, torch.inf) + tie).argmin(dim=-1)
+            closer = to_goal.gather(1, best_seen[:, None])[:, 0] < direct
+            best = torch.where(closer, best_seen, best)
+            in_sight = self.sight.clear(positions, goals)
+            use_goal = ~torch.isfinite(direct) | (direct == 0) | (use_goal & in_sight)
         return torch.where(use_goal[:, None], goals, self.nodes[best])
+
+
+class Occupancy:
+    """The grid cells (side `cell`) that the data visits, for line-of-sight tests.
+
+    Args:
+        cells: `[C, G]` integer indices of the visited cells (`floor(position / cell)`).
+        cell: Grid side, in the positions' units.
+    """
+
+    def __init__(self, cells: np.ndarray, cell: float, device: torch.device):
+        lo = cells.min(axis=0)
+        shape = cells.max(axis=0) - lo + 1
+        grid = np.zeros(shape, dtype=bool)
+        grid[tuple((cells - lo).T)] = True
+        self.cell = float(cell)
+        self.grid = torch.as_tensor(grid.reshape(-1), device=device)
+        self.lo = torch.as_tensor(lo, device=device)
+        self.shape = torch.as_tensor(shape, device=device)
+        strides = np.cumprod(np.concatenate([shape[1:], [1]])[::-1])[::-1]
+        self.strides = torch.as_tensor(strides.copy(), device=device)
+        # Samples along a line: a quarter cell apart over the grid's diagonal (fixed: no sync).
+        diagonal = float(np.linalg.norm(shape)) * 4
+        self.t = torch.linspace(0.0, 1.0, int(np.ceil(diagonal)) + 2, device=device)
+
+    def clear(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        """`[N]`: whether the straight line from each of `a [N, G]` to `b [N, G]` crosses only
+        visited cells (a point outside the grid is not visited)."""
+        points = a[:, None] + self.t[None, :, None] * (b - a)[:, None]  # [N, S, G]
+        index = torch.floor(points / self.cell).long() - self.lo
+        inside = ((index >= 0) & (index < self.shape)).all(dim=-1)
+        flat = (torch.minimum(index.clamp(min=0), self.shape - 1) * self.strides).sum(dim=-1)
+        return (inside & self.grid[flat]).all(dim=-1)
