@@ -29,7 +29,9 @@ source bench/gpu_env.sh  # the carried wheels, PYTHONPATH
 if [ "$DEVICE" = cuda ]; then
     nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$OUT/gpu.txt"
 fi
-P=(-p "$PARAMS" --data "$DATA")
+# OVERRIDES: more -S settings for every stage, e.g. "-S segment.exclude_fallen=true".
+# shellcheck disable=SC2206
+P=(-p "$PARAMS" --data "$DATA" ${OVERRIDES:-})
 T=(-S "train.device=$DEVICE" -S train.cuda_graph=true
    -S train.max_steps=1000000 -S "train.max_minutes=$MINUTES" -S train.eval_every=1000
    -S train.checkpoint_every=1000)

@@ -187,6 +187,11 @@ class SegmentParams(_Section):
     stride: int = Field(1, ge=1, description="Steps between consecutive window starts.")
     split: SplitParams = Field(default_factory=SplitParams)
     seed: int = Field(0, description="Seed of the episode shuffle that assigns splits.")
+    exclude_fallen: bool = Field(
+        False,
+        description="Drop the windows in which the agent has fallen at any step (the ant: torso "
+        "out of its healthy height or upside down, which it cannot undo); false: keep all.",
+    )
 
 
 class TrainParams(_Section):

@@ -12,7 +12,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -154,10 +154,13 @@ def build_segments(
     stride: int = 1,
     split_fractions: dict[str, float] | None = None,
     seed: int = 0,
+    exclude: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> Segments:
     """Index windows of `window` states over `episodes` and split them by episode.
 
-    Episodes shorter than `window` hold no window; they are dropped with a warning.
+    Episodes shorter than `window` hold no window; they are dropped with a warning. With
+    `exclude` (an episode's states `[T, S]` -> bool `[T]`), windows holding an excluded step are
+    left out of every split (e.g. the ant's fallen steps: `segment.exclude_fallen`).
 
     Raises:
         UserError: no episodes, no episode long enough, or too few episodes for the splits.
@@ -188,13 +191,20 @@ def build_segments(
 
     offsets = np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64)
     split = _assign_splits(len(kept), fractions, seed)
-    starts = {}
+    starts, excluded = {}, 0
     for i, name in enumerate(SPLITS):
-        per_episode = [
-            offsets[e] + np.arange(0, lengths[e] - window + 1, stride, dtype=np.int64)
-            for e in np.flatnonzero(split == i)
-        ]
+        per_episode = []
+        for e in np.flatnonzero(split == i):
+            local = np.arange(0, lengths[e] - window + 1, stride, dtype=np.int64)
+            if exclude is not None:
+                bad = np.concatenate([[0], np.cumsum(exclude(states[e]), dtype=np.int64)])
+                clean = bad[local + window] == bad[local]
+                excluded += int((~clean).sum())
+                local = local[clean]
+            per_episode.append(offsets[e] + local)
         starts[name] = np.concatenate(per_episode) if per_episode else np.zeros(0, np.int64)
+    if exclude is not None:
+        log.info("left out %d windows holding an excluded step", excluded)
 
     all_states = np.concatenate(states)
     all_actions = np.concatenate(actions)

@@ -6,7 +6,8 @@ import logging
 import time
 
 from pipeline.config import Params
-from pipeline.envs.spec import check_physics_dim
+from pipeline.envs.spec import check_physics_dim, make_env_spec
+from pipeline.errors import UserError
 from pipeline.paths import Paths
 from pipeline.recording import iter_episodes, read_info
 from pipeline.segments import Segments, build_segments, save_segments
@@ -26,6 +27,13 @@ def run(params: Params, paths: Paths) -> Segments:
         str(source),
         "it was written for another model; record or import it again (`oposm ingest`)",
     )
+    exclude = None
+    if cfg.exclude_fallen:
+        exclude = getattr(make_env_spec(info.env_id, info.env_kwargs), "fallen", None)
+        if exclude is None:
+            raise UserError(
+                f"segment.exclude_fallen: the agent of {info.env_id} cannot fall; set it to false"
+            )
     segments = build_segments(
         iter_episodes(source),
         info,
@@ -33,6 +41,7 @@ def run(params: Params, paths: Paths) -> Segments:
         stride=cfg.stride,
         split_fractions=cfg.split.model_dump(),
         seed=cfg.seed,
+        exclude=exclude,
     )
     save_segments(segments, paths.segments(params.ingest.name))
     elapsed = time.perf_counter() - start

@@ -239,3 +239,29 @@ def test_cli_ingests_ant_data_with_the_checks_in_its_report(expert, tmp_path) ->
     assert report["steps"] == 60 and report["n_problems"] == 0
     assert report["fallen_steps"] == 0 and "max_velocity_mismatch" in report
     assert read_info(tmp_path / "data/demos/ant.mcap").generator["expert"]["info"]["robot"] == "ant"
+
+
+def test_segment_exclude_fallen_drops_the_windows_of_a_fallen_ant(generated, tmp_path) -> None:
+    info, (first, second) = generated
+    fallen = first.observations.copy()
+    fallen[25:, 3:7] = [0.0, 1.0, 0.0, 0.0]  # upside down from step 25 on
+    episodes = [dataclasses.replace(first, observations=fallen)] + [
+        dataclasses.replace(second, index=i, time=second.time + 10.0 * i) for i in range(1, 4)
+    ]
+    (tmp_path / "data/demos").mkdir(parents=True)
+    write_dataset(tmp_path / "data/demos/ant.mcap", info, episodes)
+    counts = {}
+    for exclude in (False, True):
+        params = {
+            "ingest": {"name": "ant"},
+            "segment": {"window": 10, "split": {"train": 0.5, "validation": 0.25, "test": 0.25},
+                        "exclude_fallen": exclude},
+        }  # fmt: skip
+        (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
+        paths = ["--params", str(tmp_path / "params.yaml"), "--data", str(tmp_path / "data")]
+        result = runner.invoke(app, ["segment", *paths])
+        assert result.exit_code == 0, result.output
+        report = json.loads((tmp_path / "data/reports/segment/report.json").read_text())
+        counts[exclude] = sum(report[f"{s}_windows"] for s in ("train", "validation", "test"))
+    # Episode 0's windows starting at 16..30 hold a step from 25 on: 15 of its 31 windows.
+    assert counts[False] - counts[True] == 15

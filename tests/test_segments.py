@@ -1,6 +1,6 @@
 import numpy as np
 import pytest
-from factories import make_episodes
+from factories import make_episodes, make_info
 
 from pipeline.errors import UserError
 from pipeline.segments import SPLITS, build_segments, load_segments, save_segments
@@ -162,3 +162,20 @@ def test_segments_json_that_is_not_an_object_is_a_user_error(tmp_path, info):
     (tmp_path / "seg" / "segments.json").write_text("[1, 2]")
     with pytest.raises(UserError, match="not a JSON object"):
         load_segments(tmp_path / "seg")
+
+
+def test_exclude_leaves_out_every_window_holding_an_excluded_step():
+    episodes = make_episodes([30, 25, 30, 28, 30, 26], seed=3)
+
+    def bad(states: np.ndarray) -> np.ndarray:  # state[:, 1] is the step within the episode
+        return (states[:, 1] + states[:, 0]) % 13 == 7
+
+    split = {"train": 0.5, "validation": 0.25, "test": 0.25}
+    full = build_segments(episodes, make_info(), window=5, split_fractions=split, seed=0)
+    kept = build_segments(episodes, make_info(), 5, split_fractions=split, seed=0, exclude=bad)
+    for name in SPLITS:
+        s = full.starts[name]
+        clean = np.array([not bad(full.states[t : t + 5]).any() for t in s], dtype=bool)
+        assert not clean.all()
+        np.testing.assert_array_equal(kept.starts[name], s[clean])
+    np.testing.assert_array_equal(kept.states, full.states)  # the data stay; only windows go
