@@ -129,9 +129,20 @@ def main() -> None:
     parser.add_argument("--command", action="append", default=[], help="a command run (repeat)")
     parser.add_argument("--machine", default=f"{platform.machine()} CPU, {os.cpu_count()} cores")
     parser.add_argument("--out", type=Path, default=ROOT / "results")
+    parser.add_argument(
+        "--keep",
+        action="store_true",
+        help="start from the runs and commands of the existing OUT/ogbench-point.json (their run "
+        "folders may be gone); a --run with the same DATASET/LABEL replaces its row",
+    )
     args = parser.parse_args()
     try:
-        runs = [collect(spec) for spec in args.run]
+        previous = (read(args.out / "ogbench-point.json") or {}) if args.keep else {}
+        new = [collect(spec) for spec in args.run]
+        labels = {(r["dataset"], r["label"]) for r in new}
+        runs = [r for r in previous.get("runs", []) if (r["dataset"], r["label"]) not in labels]
+        runs += new
+        commands = previous.get("commands", []) + args.command
         if not runs:
             raise UserError("give at least one --run DATASET/LABEL=RUN_DIR")
     except UserError as exc:
@@ -141,10 +152,10 @@ def main() -> None:
     published = {m: dict(zip(METHODS, v, strict=True)) for m, v in PUBLISHED.items()}
     write_json(
         args.out / "ogbench-point.json",
-        {"machine": args.machine, "runs": runs, "commands": args.command, "published": published},
+        {"machine": args.machine, "runs": runs, "commands": commands, "published": published},
     )
     with atomic_path(args.out / "ogbench-point.md") as tmp:
-        tmp.write_text(render(runs, args.command, args.machine))
+        tmp.write_text(render(runs, commands, args.machine))
 
 
 if __name__ == "__main__":

@@ -54,6 +54,19 @@ def test_the_report_puts_runs_beside_ogbench_with_a_verdict(tmp_path):
     assert data["runs"][1]["tasks"]["ogbench-task3"]["successes"] == 5
     assert data["published"]["giant"]["QRL"] == [68, 7]
     assert data["published"]["giant-stitch"]["QRL"] == [50, 8]
+    # --keep: the earlier rows stay (their run folders gone); the same DATASET/LABEL is replaced.
+    for run in (good, weak, gcbc, stitch):
+        (run / "reports" / "deploy" / "report.json").unlink()
+    better = _run(tmp_path / "better", [45] * 5)
+    again = ["--run", f"medium-stitch/sub={better}", "--run", f"medium-stitch/new={better}"]
+    again += ["--keep", "--command", "uv run oposm deploy --run better", "--out", str(out)]
+    subprocess.run([sys.executable, str(SCRIPT), *again], check=True, cwd=ROOT)
+    data = json.loads((out / "ogbench-point.json").read_text())
+    assert [r["label"] for r in data["runs"]] == ["sub", "plain", "GCBC (ours)", "sub", "new"]
+    assert data["runs"][3]["tasks"]["ogbench"]["successes"] == 225
+    assert data["commands"] == ["uv run oposm deploy ...", "uv run oposm deploy --run better"]
+    text = (out / "ogbench-point.md").read_text()
+    assert "- medium-stitch: sub 90 (86-93) is above the best published 80 %." in text
 
 
 def test_a_run_that_is_not_of_the_ogbench_tasks_is_a_one_line_error(tmp_path):
