@@ -398,9 +398,10 @@ class SubgoalParams(_Section):
         "a few hops away may still lie round a wall: keep it small.",
     )
     line_of_sight: bool = Field(
-        False,
+        True,
         description="Aim at the goal, or at a waypoint, only when the straight line to it crosses "
-        "cells the data visits (no wall between), else at the best waypoint in sight.",
+        "cells the data visits (no wall between), else at the best waypoint in sight; false: "
+        "by skill hops alone (the rule before it).",
     )
 
 

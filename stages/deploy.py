@@ -96,8 +96,9 @@ def _oposm(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, devi
         subgoals = SubgoalGraph.from_segments(
             segments, spec.goal_dims, sub.cell, sub.reach, device, sub.line_of_sight
         )
-        log.info("subgoal graph: %d nodes (cells of %g m), reach %d skills",
-                 len(subgoals.nodes), sub.cell, sub.reach)  # fmt: skip
+        log.info("subgoal graph: %d nodes (cells of %g m), reach %d skills%s",
+                 len(subgoals.nodes), sub.cell, sub.reach,
+                 ", line of sight" if sub.line_of_sight else "")  # fmt: skip
     return AgentSetup(
         SkillMPC(
             model,
