@@ -29,7 +29,10 @@ def run(params: Params, paths: Paths) -> Segments:
     )
     exclude = None
     if cfg.exclude_fallen:
-        exclude = getattr(make_env_spec(info.env_id, info.env_kwargs), "fallen", None)
+        try:
+            exclude = getattr(make_env_spec(info.env_id, info.env_kwargs), "fallen", None)
+        except UserError as exc:
+            raise UserError(f"segment.exclude_fallen: {exc}; or set it to false") from exc
         if exclude is None:
             raise UserError(
                 f"segment.exclude_fallen: the agent of {info.env_id} cannot fall; set it to false"

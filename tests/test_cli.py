@@ -284,6 +284,22 @@ def test_segment_refuses_a_dataset_whose_physics_states_have_the_wrong_size(tmp_
     assert not (tmp_path / "d/segments").exists()
 
 
+def test_segment_exclude_fallen_on_a_point_maze_is_a_one_line_error(tmp_path):
+    from factories import make_episodes, make_info
+
+    from pipeline.recording import write_dataset
+
+    demos = tmp_path / "d/demos"
+    demos.mkdir(parents=True)
+    write_dataset(demos / "tiny.mcap", make_info("tiny"), make_episodes([60] * 6))
+    params = {**TINY, "segment": {**TINY.get("segment", {}), "exclude_fallen": True}}
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
+    args = ["segment", "--params", str(tmp_path / "params.yaml"), "--data", str(tmp_path / "d")]
+    line = _one_line_error(runner.invoke(app, args))
+    assert "segment.exclude_fallen" in line and "cannot fall" in line
+    assert not (tmp_path / "d/segments").exists()
+
+
 @pytest.mark.parametrize(
     ("stage", "lower"),
     [
