@@ -81,7 +81,9 @@ def render(runs: list[dict], commands: list[str], machine: str) -> str:
         "its navigate dataset, `-stitch` its stitch dataset (both made with OGBench's recipe, "
         "smaller than OGBench's files). Published: OGBench's paper, mean +- std over 8 seeds "
         "(navigate: REFERENCES.md; stitch: OGBench's table as copied by later papers, whose "
-        "navigate rows match REFERENCES.md). Machine: " + machine + ".",
+        "navigate rows match REFERENCES.md). Subgoal rows without \"line of sight\" in their "
+        "label ran before `deploy.subgoals.line_of_sight` existed (the rule by skill hops alone, "
+        "`line_of_sight: false`). Machine: " + machine + ".",
         "",
         "| dataset | agent | task 1 | task 2 | task 3 | task 4 | task 5 | overall | episodes |",
         "|---|---|---|---|---|---|---|---|---|",
