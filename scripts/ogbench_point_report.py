@@ -81,7 +81,7 @@ def render(runs: list[dict], commands: list[str], machine: str) -> str:
         "its navigate dataset, `-stitch` its stitch dataset (both made with OGBench's recipe, "
         "smaller than OGBench's files). Published: OGBench's paper, mean +- std over 8 seeds "
         "(navigate: REFERENCES.md; stitch: OGBench's table as copied by later papers, whose "
-        "navigate rows match REFERENCES.md). Subgoal rows without \"line of sight\" in their "
+        'navigate rows match REFERENCES.md). Subgoal rows without "line of sight" in their '
         "label ran before `deploy.subgoals.line_of_sight` existed (the rule by skill hops alone, "
         "`line_of_sight: false`). Machine: " + machine + ".",
         "",
@@ -125,11 +125,17 @@ def render(runs: list[dict], commands: list[str], machine: str) -> str:
     return "\n".join(lines)
 
 
+def _this_machine() -> str:
+    return f"{platform.machine()} CPU, {os.cpu_count()} cores"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--run", action="append", default=[], help="DATASET/LABEL=RUN_DIR (repeat)")
     parser.add_argument("--command", action="append", default=[], help="a command run (repeat)")
-    parser.add_argument("--machine", default=f"{platform.machine()} CPU, {os.cpu_count()} cores")
+    parser.add_argument(
+        "--machine", help="where the runs ran (default: this machine, or with --keep the kept one)"
+    )
     parser.add_argument("--out", type=Path, default=ROOT / "results")
     parser.add_argument(
         "--keep",
@@ -145,6 +151,7 @@ def main() -> None:
         runs = [r for r in previous.get("runs", []) if (r["dataset"], r["label"]) not in labels]
         runs += new
         commands = previous.get("commands", []) + args.command
+        machine = args.machine or previous.get("machine") or _this_machine()
         if not runs:
             raise UserError("give at least one --run DATASET/LABEL=RUN_DIR")
     except UserError as exc:
@@ -154,10 +161,10 @@ def main() -> None:
     published = {m: dict(zip(METHODS, v, strict=True)) for m, v in PUBLISHED.items()}
     write_json(
         args.out / "ogbench-point.json",
-        {"machine": args.machine, "runs": runs, "commands": commands, "published": published},
+        {"machine": machine, "runs": runs, "commands": commands, "published": published},
     )
     with atomic_path(args.out / "ogbench-point.md") as tmp:
-        tmp.write_text(render(runs, commands, args.machine))
+        tmp.write_text(render(runs, commands, machine))
 
 
 if __name__ == "__main__":

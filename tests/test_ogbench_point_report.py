@@ -39,6 +39,7 @@ def test_the_report_puts_runs_beside_ogbench_with_a_verdict(tmp_path):
     stitch = _run(tmp_path / "stitch", [40, 40, 40, 40, 40])  # 80 %: not above QRL's 80
     runs += ["--run", f"medium-stitch/sub={stitch}"]
     command = ["--command", "uv run oposm deploy ...", "--out", str(out)]
+    command += ["--machine", "the first box"]
     subprocess.run([sys.executable, str(SCRIPT), *runs, *command], check=True, cwd=ROOT)
     text = (out / "ogbench-point.md").read_text()
     assert "| medium | sub | 100 (93-100) | 100 (93-100) | 98 (90-100) |" in text
@@ -65,6 +66,7 @@ def test_the_report_puts_runs_beside_ogbench_with_a_verdict(tmp_path):
     assert [r["label"] for r in data["runs"]] == ["sub", "plain", "GCBC (ours)", "sub", "new"]
     assert data["runs"][3]["tasks"]["ogbench"]["successes"] == 225
     assert data["commands"] == ["uv run oposm deploy ...", "uv run oposm deploy --run better"]
+    assert data["machine"] == "the first box"  # kept with the rows
     text = (out / "ogbench-point.md").read_text()
     assert "- medium-stitch: sub 90 (86-93) is above the best published 80 %." in text
 
