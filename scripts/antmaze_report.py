@@ -346,7 +346,9 @@ def main() -> None:
         type=Path,
         help="JSON: maze -> the commands run (a list), or {commands: [...], notes: [...]}",
     )
-    parser.add_argument("--machine", default=f"{platform.machine()} CPU, {os.cpu_count()} cores")
+    parser.add_argument(
+        "--machine", help="where the runs ran (default: this machine, or with --keep the kept one)"
+    )
     parser.add_argument("--out", type=Path, default=ROOT / "results")
     parser.add_argument(
         "--keep",
@@ -380,7 +382,9 @@ def main() -> None:
         }
     results = {
         "what": "OPOSM on OGBench's ant mazes (issue 19 §3), beside OGBench's published table",
-        "machine": args.machine,
+        "machine": args.machine
+        or (previous or {}).get("machine")
+        or f"{platform.machine()} CPU, {os.cpu_count()} cores",
         "expert": expert,
         "mazes": mazes,
         "published_ogbench": PUBLISHED,

@@ -135,13 +135,14 @@ def test_report_reads_a_runs_reports_and_writes_markdown_and_json(tmp_path, monk
     shutil.move(run, tmp_path / "gone")
     (tmp_path / "gone" / "reports" / "ingest").rename(tmp_path / "gone" / "reports" / "x")
     monkeypatch.setattr(sys, "argv", ["x", "--maze", f"large={tmp_path / 'gone'}", "--keep",
-                                      "--out", str(out), "--machine", "test box"])  # fmt: skip
+                                      "--out", str(out)])  # fmt: skip
     _module().main()
     results = json.loads((out / "antmaze.json").read_text())
     assert set(results["mazes"]) == {"medium", "large"}
     assert results["mazes"]["medium"]["ingest"]["steps"] == 4004  # kept from the first run
     assert results["mazes"]["large"]["ingest"] is None
     assert set(results["verdicts"]) == {"medium", "large"}
+    assert results["machine"] == "test box"  # kept with the mazes
     assert "4 episodes, 4004 steps" in (out / "antmaze.md").read_text()
 
 

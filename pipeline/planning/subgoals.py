@@ -137,14 +137,14 @@ class SubgoalGraph:
         tie = 1e-3 * ahead / (1.0 + ahead.max())
         best = (torch.where(within, to_goal, torch.inf) + tie).argmin(dim=-1)
         direct = self.hops[here, there]
-        use_goal = (direct <= self.reach) | ~torch.isfinite(direct)
-        if self.sight is not None:
+        near = direct <= self.reach
+        if self.sight is not None:  # the goal only in sight; a waypoint in sight when one helps
             seen = within & self.visible[here]
             best_seen = (torch.where(seen, to_goal, torch.inf) + tie).argmin(dim=-1)
             closer = to_goal.gather(1, best_seen[:, None])[:, 0] < direct
             best = torch.where(closer, best_seen, best)
-            in_sight = self.sight.clear(positions, goals)
-            use_goal = ~torch.isfinite(direct) | (direct == 0) | (use_goal & in_sight)
+            near = (direct == 0) | (near & self.sight.clear(positions, goals))
+        use_goal = near | ~torch.isfinite(direct)
         return torch.where(use_goal[:, None], goals, self.nodes[best])
 
 
