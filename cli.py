@@ -627,6 +627,9 @@ def bench_plan(
     reference_envs: Annotated[
         int | None, typer.Option(help="Environments the reference's batch is timed on.")
     ] = None,
+    triton: Annotated[
+        bool, typer.Option(help="Also time the planners on the fused Triton kernel (CUDA).")
+    ] = False,
     params: ParamsOption = Path("params.yaml"),
     set_: SetOption = None,
     data: DataOption = Path("data"),
@@ -636,14 +639,18 @@ def bench_plan(
     In one process, interleaved: one-env replans (p50/p95) and --envs at once (per env, plans/s)
     for deploy.planner and the paper's table 14, each batched (and --compiled) and as a plain
     eager reference of the paper's procedure (one environment at a time; speedups are its time
-    over ours), deploy.llp (the paper code's LLP) and LLP at its timing figure's L 400, 100
-    iterations; FLOPs counted by torch, GFLOP/s against a measured matmul roofline. Needs
-    `oposm train` (and `oposm dynamics`, `oposm bc` for LLP)."""
+    over ours), and (--triton) on the fused kernel of `deploy.planner.kernel`; deploy.llp (the
+    paper code's LLP) and LLP at its timing figure's L 400, 100 iterations; FLOPs counted by
+    torch, GFLOP/s against a measured matmul roofline. Needs `oposm train` (and `oposm
+    dynamics`, `oposm bc` for LLP)."""
     from bench.plan import bench_plan as run
+    from pipeline.devices import resolve_device
     from pipeline.paths import Paths
 
     p = _load(params, set_)
-    numbers = run(p, Paths(data), envs, repeats, batch_repeats, compiled, reference_envs)
+    if triton and resolve_device(p.deploy.device, "deploy.device").type != "cuda":
+        raise UserError("--triton needs a CUDA GPU (deploy.device resolves to cpu)")
+    numbers = run(p, Paths(data), envs, repeats, batch_repeats, compiled, reference_envs, triton)
     _print_numbers(numbers, width=44, digits=4)
 
 

@@ -5,7 +5,7 @@
 # as one table with the targets.
 #
 # Dry run of the plumbing without a GPU (no compile, tiny sizes):
-#   python bench/gpu_table.py --device cpu --envs 4 --no-compile --train-steps 3
+#   python bench/gpu_table.py --device cpu --envs 4 --no-compile --no-triton --train-steps 3
 #
 # Where: the device tool's machine (no network; its python3 holds torch 2.11 + CUDA, pytest,
 # typer, safetensors, tqdm, ...). What it lacks travels as wheels in .whl/, fetched here first
@@ -26,16 +26,23 @@ source bench/gpu_env.sh  # the carried wheels, PYTHONPATH
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$OUT/gpu.txt"
 
 echo "== CUDA tests"
-# GPU_TESTS_K: a pytest -k filter (e.g. "training"); GPU_TABLE_ARGS: gpu_table.py arguments.
+# GPU_TESTS_K: a pytest -k filter (e.g. "training"); GPU_TABLE_ARGS: gpu_table.py arguments;
+# GPU_BENCH_TIMEOUT: seconds the benchmarks may take (330).
 timeout 150 "$PY" -m pytest -q -ra -m gpu tests/test_gpu.py ${GPU_TESTS_K:+-k "$GPU_TESTS_K"} 2>&1 |
     tee "$OUT/tests.log"
 tests=${PIPESTATUS[0]}
 
+echo "== the fused rollout kernel alone (bench/gpu_kernel.py)"
+timeout "${GPU_KERNEL_TIMEOUT:-150}" "$PY" bench/gpu_kernel.py --out "$OUT/kernel.json" 2>"$OUT/kernel.log" |
+    tee "$OUT/kernel.txt"
+kernel=${PIPESTATUS[0]}
+[ "$kernel" -eq 0 ] || tail -30 "$OUT/kernel.log"
+
 echo "== benchmarks"
 # shellcheck disable=SC2086
-timeout 330 "$PY" bench/gpu_table.py --out "$OUT/gpu.json" ${GPU_TABLE_ARGS:-} 2>"$OUT/bench.log" |
+timeout "${GPU_BENCH_TIMEOUT:-330}" "$PY" bench/gpu_table.py --out "$OUT/gpu.json" ${GPU_TABLE_ARGS:-} 2>"$OUT/bench.log" |
     tee "$OUT/table.txt"
 bench=${PIPESTATUS[0]}
 [ "$bench" -eq 0 ] || grep -A12 Traceback "$OUT/bench.log" | tail -40
-echo "tests exit $tests, benchmarks exit $bench"
-exit $(( tests || bench ))
+echo "tests exit $tests, kernel exit $kernel, benchmarks exit $bench"
+exit $(( tests || kernel || bench ))

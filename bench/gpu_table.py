@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import re
 import sys
 import time
 import traceback
@@ -29,6 +30,10 @@ log = logging.getLogger("bench.gpu_table")
 TARGETS = {  # issue 16, measured on one GPU
     "oposm_table14_compiled_replan_1env_p50_s": ("<=", 0.005),
     "oposm_table14_compiled_plans_per_s_256envs": (">=", 2000.0),
+    "oposm_table14_triton_compiled_replan_1env_p50_s": ("<=", 0.005),
+    "oposm_table14_triton_compiled_plans_per_s_256envs": (">=", 2000.0),
+    "bf16_oposm_table14_triton_compiled_replan_1env_p50_s": ("<=", 0.005),
+    "bf16_oposm_table14_triton_compiled_plans_per_s_256envs": (">=", 2000.0),
     "train_paper_compiled_windows_per_s": (">=", 50_000.0),
     "train_paper_windows_per_s": (">=", 50_000.0),
     "train_paper_graph_windows_per_s": (">=", 50_000.0),
@@ -52,11 +57,15 @@ def _sections(args: argparse.Namespace) -> dict[str, Callable[[], dict[str, floa
 
         return run
 
-    def plan(envs: int) -> Callable[[], dict[str, float]]:
+    def plan(envs: int, dtype: str = "float32") -> Callable[[], dict[str, float]]:
         def run() -> dict[str, float]:
-            params = load_params(Path("params.yaml"), [f"deploy.device={device}"])
-            return bench_plan(params, data, envs, repeats=10, batch_repeats=3,
-                              compiled=args.compile, reference_envs=8)  # fmt: skip
+            over = [f"deploy.device={device}", f"deploy.planner.dtype={dtype}"]
+            params = load_params(Path("params.yaml"), over)
+            got = bench_plan(params, data, envs, repeats=10, batch_repeats=3,
+                             compiled=args.compile, reference_envs=8, triton=args.triton,
+                             reference=dtype == "float32")  # fmt: skip
+            prefix = "" if dtype == "float32" else "bf16_"  # the reference: float32's section
+            return {prefix + k: v for k, v in got.items()}
 
         return run
 
@@ -76,6 +85,10 @@ def _sections(args: argparse.Namespace) -> dict[str, Callable[[], dict[str, floa
         )
     for envs in args.envs:  # the one-environment numbers: the last section's (first: targets)
         sections[f"plan_{envs}envs"] = plan(envs)
+    for envs in args.bf16_envs:
+        sections[f"plan_{envs}envs_bf16"] = plan(envs, "bfloat16")
+    if args.only:
+        sections = {k: v for k, v in sections.items() if re.search(args.only, k)}
     return sections
 
 
@@ -101,6 +114,20 @@ def main() -> None:
     parser.add_argument("--device", default="cuda")
     parser.add_argument("--envs", type=int, nargs="*", default=[256, 64])
     parser.add_argument("--no-compile", dest="compile", action="store_false")
+    parser.add_argument(
+        "--no-triton",
+        dest="triton",
+        action="store_false",
+        help="Leave out the planners on the fused Triton kernel.",
+    )
+    parser.add_argument(
+        "--bf16-envs",
+        type=int,
+        nargs="*",
+        default=[],
+        help="Also plan in bfloat16 at these batch sizes (no reference).",
+    )
+    parser.add_argument("--only", default="", help="Run only the sections this regex finds.")
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, stream=sys.stderr)
     # Every bench_plan call builds new compiled planners (each a cache entry of the same code).

@@ -66,7 +66,14 @@ def _seconds(call: Callable) -> float:
     return time.perf_counter() - start
 
 
-def _planners(params: Params, paths: Paths, device: torch.device, compiled: bool) -> dict:
+def _planners(
+    params: Params,
+    paths: Paths,
+    device: torch.device,
+    compiled: bool,
+    triton: bool = False,
+    reference: bool = True,
+) -> dict:
     """label -> (planner, time batched too); LLP only when its models exist."""
     cfg, name = params.deploy, params.ingest.name
     model, _ = load_model(paths.existing(paths.model(name)), device=device)
@@ -79,7 +86,16 @@ def _planners(params: Params, paths: Paths, device: torch.device, compiled: bool
         out[label] = (SkillPlanner(model, config), True)
         if compiled:
             out[f"{label}_compiled"] = (SkillPlanner(model, replace(config, compile=True)), True)
-        out[f"{label}_reference"] = (ReferencePlanner(model, config), True)
+        if triton:  # the fused rollout-and-cost kernel (`deploy.planner.kernel: triton`)
+            fused = replace(config, kernel="triton")
+            out[f"{label}_triton"] = (SkillPlanner(model, fused), True)
+            if compiled:
+                out[f"{label}_triton_compiled"] = (
+                    SkillPlanner(model, replace(fused, compile=True)),
+                    True,
+                )
+        if reference:
+            out[f"{label}_reference"] = (ReferencePlanner(model, config), True)
     dyn_dir, bc_dir = paths.existing(paths.dynamics(name)), paths.existing(paths.policy(name, "bc"))
     if not (dyn_dir.exists() and bc_dir.exists()):
         log.info("LLP not timed: run `oposm dynamics` and `oposm bc` first")
@@ -100,6 +116,8 @@ def bench_plan(
     batch_repeats: int = 3,
     compiled: bool = False,
     reference_envs: int | None = None,
+    triton: bool = False,
+    reference: bool = True,
 ) -> dict[str, float]:
     """Per configuration: one-environment replan p50 / p95 (s), batched replan of `envs`
     environments per environment (s), plans/s, FLOPs of one replan, achieved GFLOP/s and its
@@ -112,7 +130,7 @@ def bench_plan(
         torch.set_num_threads(cfg.threads)
     device = resolve_device(cfg.device, "deploy.device")
     log.info("loading the models and the training data's locations (%s)", name)
-    planners = _planners(params, paths, device, compiled)
+    planners = _planners(params, paths, device, compiled, triton, reference)
     segments = load_segments(paths.existing(paths.segments(name)))
     dims = list(make_env_spec(segments.info.env_id, segments.info.env_kwargs).goal_dims)
     locations = train_locations(segments, tuple(dims))
@@ -137,10 +155,10 @@ def bench_plan(
         _plan_call(planner, s0[:1], goals[:1], 0)()
         if batched and not label.endswith("_reference"):  # its batch is one env at a time
             _plan_call(planner, s0[:envs], goals[:envs], 0)()
-        if label.endswith("_compiled"):  # the eager planner's arithmetic; a replayed CUDA
-            eager = label.removesuffix("_compiled")  # graph dispatches no ops to count
-            out[f"{label}_flops_per_replan"] = out[f"{eager}_flops_per_replan"]
-            continue
+        eager = label.removesuffix("_compiled").removesuffix("_triton")
+        if eager != label:  # the eager planner's arithmetic: a replayed CUDA graph dispatches
+            out[f"{label}_flops_per_replan"] = out[f"{eager}_flops_per_replan"]  # no ops to
+            continue  # count, and the counter does not see into the Triton kernel
         with FlopCounterMode(display=False) as counter:
             _plan_call(planner, s0[:1], goals[:1], 0)()
         out[f"{label}_flops_per_replan"] = float(counter.get_total_flops())
@@ -172,8 +190,9 @@ def bench_plan(
         out[f"{label}_gflops_{envs}envs"] = gflops
         out[f"{label}_roofline_fraction_{envs}envs"] = gflops / out["roofline_gflops"]
     for label in ("oposm", "oposm_table14"):
-        for variant in (label, f"{label}_compiled"):
-            if variant not in planners:
+        for suffix in ("", "_compiled", "_triton", "_triton_compiled"):
+            variant = label + suffix
+            if variant not in planners or f"{label}_reference" not in planners:
                 continue
             ref = f"{label}_reference"
             out[f"{variant}_speedup_1env"] = (

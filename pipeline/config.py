@@ -374,6 +374,12 @@ class PlannerParams(_Section):
         description="What the prior and TAWM multiply in during the search: bfloat16 is about "
         "twice as fast on CPUs with AVX512-BF16 and on GPUs (states stay float32).",
     )
+    kernel: Literal["torch", "triton"] = Field(
+        "torch",
+        description="What computes the rollout and goal cost in the search: torch (an "
+        "operation per layer and skill), or triton: one fused kernel per CEM iteration (CUDA "
+        "only; costs with a fall penalty stay on torch). The same plans up to rounding.",
+    )
 
     @model_validator(mode="after")
     def _elites_fit(self) -> PlannerParams:

@@ -89,6 +89,11 @@ def _oposm(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, devi
             f"{paths.segments(name)} holds dataset '{segments.info.name}' but the model was "
             f"trained on '{meta.get('dataset')}'; re-run `oposm train`"
         )
+    if cfg.planner.kernel == "triton" and device.type != "cuda":
+        raise UserError(
+            f"deploy.planner.kernel: triton runs on a CUDA GPU, but deploy.device is "
+            f"{device.type}; set deploy.planner.kernel=torch"
+        )
     planner = SkillPlanner(model, planner_config(cfg.planner))
     subgoals = None
     if cfg.subgoals.enabled:

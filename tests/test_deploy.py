@@ -278,6 +278,8 @@ def test_bad_deploy_inputs_are_one_line_errors(project, tmp_path):
     assert "no recordings" in _one_line_error(runner.invoke(app, ["view", str(tmp_path)]))
     line = _one_line_error(runner.invoke(app, ["deploy", *common, "-S", "deploy.agents=[llm]"]))
     assert "deploy.agents" in line and "'oposm', 'llp', 'gcbc' or 'expert'" in line
+    args = ["deploy", *common, "-S", "deploy.device=cpu", "-S", "deploy.planner.kernel=triton"]
+    assert "deploy.planner.kernel=torch" in _one_line_error(runner.invoke(app, args))
     # A checkpoint whose states are not the maze's [x, y, vx, vy].
     model, meta = load_model(root / "data/models/tiny")
     wrong = SkillModel(SkillModelConfig(6, 2, z_dim=4, hidden=32))

@@ -4,6 +4,7 @@ rollout, and the skill MPC (warm start included) in closed loop. Skipped without
 on both; float32 throughout, as training and deployment run."""
 
 import copy
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -15,7 +16,9 @@ from pipeline.evaluation.episodes import RunConfig, run_episodes
 from pipeline.evaluation.tasks import EpisodeSpec
 from pipeline.model import SkillModel, SkillModelConfig
 from pipeline.planning import CEMConfig, GoalCost, PlannerConfig, SkillPlanner, problem_keys
+from pipeline.planning.fused import PlannerNets
 from pipeline.planning.mpc import SkillMPC
+from pipeline.planning.triton_rollout import TritonNets
 from pipeline.training.cuda_graphs import CudaGraphUpdater
 from pipeline.training.data import WindowBatch
 from pipeline.training.losses import e_objective, m_objective, vi_objective
@@ -213,6 +216,35 @@ def check_graphed_planner_matches_eager(device: str) -> None:
     assert sorted(graphed._graphs) == [2, 4]
 
 
+def check_triton_planner_matches_torch(device: str) -> None:
+    """`deploy.planner.kernel: triton` on the GPU: eager, and compiled + CUDA graph, the torch
+    planner's plans (float32, IEEE products in the kernel); in bfloat16, the torch bfloat16
+    rollout within bf16 rounding."""
+    model = _model().to(device)
+    g = torch.Generator().manual_seed(5)
+    s0, goals = torch.randn(3, 4, generator=g).to(device), torch.randn(3, 2, generator=g).to(device)
+    keys = problem_keys([4, 5, 6], device)
+    config = PlannerConfig(4, CEMConfig(100, 20, 8), prior_weight=0.5, skill_penalty=0.05)
+    want = SkillPlanner(model, config).plan(s0, GoalCost(goals), keys)
+    for compile in (False, True):
+        fused = replace(config, kernel="triton", compile=compile)
+        for _ in range(2):  # the second: a replay
+            got = SkillPlanner(model, fused).plan(s0, GoalCost(goals), keys)
+            for field in ("eps", "states", "cost", "objective"):
+                torch.testing.assert_close(getattr(got, field), getattr(want, field), **CLOSE)
+    planner = SkillPlanner(model, config)
+    eps = torch.randn(3, 50, 4, 8, generator=g).to(device)
+    nets = PlannerNets(model, torch.bfloat16)
+    s0_n = model.norm_states(s0)
+    prior0 = nets.prior(s0_n)
+    states, skills = planner._rollout(eps, nets, s0, s0_n, prior0)
+    got = TritonNets(model, torch.bfloat16).rollout_cost(eps, s0, s0_n, prior0, goals, (0, 1), 0)
+    torch.testing.assert_close(got[0], states, rtol=5e-2, atol=5e-2)
+    torch.testing.assert_close(got[1], skills, rtol=5e-2, atol=5e-2)
+    assert not torch.equal(got[0], TritonNets(model).rollout_cost(  # it ran in bf16
+        eps, s0, s0_n, prior0, goals, (0, 1), 0)[0])  # fmt: skip
+
+
 def test_training_objectives_gradients_and_an_em_step_on_cuda_match_cpu():
     check_training_matches_cpu("cuda")
 
@@ -231,3 +263,7 @@ def test_skill_rollout_and_mpc_on_cuda_match_cpu():
 
 def test_compiled_cuda_graph_planner_matches_eager_and_cpu():
     check_graphed_planner_matches_eager("cuda")
+
+
+def test_triton_planner_matches_torch_on_cuda():
+    check_triton_planner_matches_torch("cuda")

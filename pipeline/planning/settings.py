@@ -21,6 +21,7 @@ def planner_config(p: PlannerParams) -> PlannerConfig:
         warm_start=p.warm_start,
         compile=p.compile,
         dtype=p.dtype,
+        kernel=p.kernel,
     )
 
 

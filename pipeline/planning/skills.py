@@ -34,6 +34,7 @@ from pipeline.model.skill_model import SkillModel
 from pipeline.planning.cem import CEM, CEMConfig, CEMResult, CEMState
 from pipeline.planning.costs import GoalCost
 from pipeline.planning.fused import PlannerNets
+from pipeline.planning.triton_rollout import TritonNets
 
 # `predicted states [B, K, L + 1, sd] -> cost [B, K]`, e.g. `GoalCost`.
 StateCost = Callable[[torch.Tensor], torch.Tensor]
@@ -58,6 +59,9 @@ class PlannerConfig:
             CUDA graph); the same plans as eager up to floating-point rounding.
         dtype: What the prior and TAWM multiply in inside the search ("float32", or "bfloat16":
             about twice the matmul speed where the hardware has it; states stay float32).
+        kernel: What computes the rollout and the goal cost: "torch" (one operation per layer and
+            skill), or "triton": one Triton kernel per CEM iteration for a `GoalCost` without a
+            fall test (`pipeline.planning.triton_rollout`; GPU; others stay on "torch").
     """
 
     horizon: int = 10
@@ -69,6 +73,11 @@ class PlannerConfig:
     warm_start: bool = True
     compile: bool = False
     dtype: str = "float32"
+    kernel: str = "torch"
+
+    def __post_init__(self) -> None:
+        if self.kernel not in ("torch", "triton"):
+            raise ValueError(f"kernel must be 'torch' or 'triton', got {self.kernel!r}")
 
 
 @dataclass
@@ -140,7 +149,10 @@ class SkillPlanner:
         self, s0: torch.Tensor, cost: StateCost, keys: torch.Tensor, mean: torch.Tensor
     ) -> CEMResult:
         """The CEM search (eager, or with compiled iterations); extras: states, z, task cost."""
-        nets = PlannerNets(self.model, getattr(torch, self.config.dtype))
+        dtype = getattr(torch, self.config.dtype)
+        nets = PlannerNets(self.model, dtype)
+        if self._fused(cost):
+            nets = FusedNets(nets, TritonNets(self.model, dtype))
         s0_n = self.model.norm_states(s0)
         prior0 = nets.prior(s0_n)  # once for all K candidates
         if not self.config.compile:
@@ -163,11 +175,17 @@ class SkillPlanner:
 
         return self.cem.minimize(None, mean, self.config.init_std, keys, step=step)
 
+    def _fused(self, cost: StateCost) -> bool:
+        """Whether the Triton kernel computes this plan's rollout and cost (`config.kernel`)."""
+        if self.config.kernel != "triton":
+            return False
+        return isinstance(cost, GoalCost) and not cost.fall_penalty
+
     def _step(
         self,
         state: CEMState,
         keys: torch.Tensor,
-        nets: PlannerNets,
+        nets: PlannerNets | FusedNets,
         s0: torch.Tensor,
         s0_n: torch.Tensor,
         prior0: tuple[torch.Tensor, torch.Tensor],
@@ -181,15 +199,20 @@ class SkillPlanner:
     def _objective(
         self,
         eps: torch.Tensor,
-        nets: PlannerNets,
+        nets: PlannerNets | FusedNets,
         s0: torch.Tensor,
         s0_n: torch.Tensor,
         prior0: tuple[torch.Tensor, torch.Tensor],
         cost: StateCost,
     ) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
         """Objective `[B, K]` of candidates `eps [B, K, L, z]`, and their states, skills, task."""
-        states, z = self._rollout(eps, nets, s0, s0_n, prior0)
-        task = cost(states)
+        if isinstance(nets, FusedNets):  # one kernel: rollout and goal cost (`_fused`)
+            states, z, task = nets.triton.rollout_cost(
+                eps, s0, s0_n, prior0, cost.goals, cost.dims, cost.skill_penalty
+            )
+        else:
+            states, z = self._rollout(eps, nets, s0, s0_n, prior0)
+            task = cost(states)
         weight = self.config.prior_weight
         objective = task + weight * eps.pow(2).mean(dim=(-2, -1)) if weight else task
         return objective, (states, z, task)
@@ -289,6 +312,17 @@ class _GraphedPlan:
             out.best[:b].clone(), out.cost[:b].clone(), out.mean[:b].clone(), out.std[:b].clone(),
             out.iterations[:b].clone(), tuple(e[:b].clone() for e in out.extras),
         )  # fmt: skip
+
+
+@dataclass
+class FusedNets:
+    """`PlannerNets` for the prior at s_0, `TritonNets` for the rollout and its cost."""
+
+    torch_nets: PlannerNets
+    triton: TritonNets
+
+    def prior(self, s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.torch_nets.prior(s)
 
 
 def shift_plan(eps: torch.Tensor) -> torch.Tensor:
