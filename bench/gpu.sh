@@ -19,6 +19,7 @@ set -uo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 OUT=${OUT:-/tmp/oposm-gpu}
+DATA=${DATA:-data}  # where the carried model and segments are
 mkdir -p "$OUT"
 source bench/gpu_env.sh  # the carried wheels, PYTHONPATH
 "$PY" -c "import torch, sys; sys.exit(not torch.cuda.is_available())" || {
@@ -33,14 +34,14 @@ timeout 150 "$PY" -m pytest -q -ra -m gpu tests/test_gpu.py ${GPU_TESTS_K:+-k "$
 tests=${PIPESTATUS[0]}
 
 echo "== the fused rollout kernel alone (bench/gpu_kernel.py)"
-timeout "${GPU_KERNEL_TIMEOUT:-150}" "$PY" bench/gpu_kernel.py --out "$OUT/kernel.json" 2>"$OUT/kernel.log" |
+timeout "${GPU_KERNEL_TIMEOUT:-150}" "$PY" bench/gpu_kernel.py --data "$DATA" --out "$OUT/kernel.json" 2>"$OUT/kernel.log" |
     tee "$OUT/kernel.txt"
 kernel=${PIPESTATUS[0]}
 [ "$kernel" -eq 0 ] || tail -30 "$OUT/kernel.log"
 
 echo "== benchmarks"
 # shellcheck disable=SC2086
-timeout "${GPU_BENCH_TIMEOUT:-330}" "$PY" bench/gpu_table.py --out "$OUT/gpu.json" ${GPU_TABLE_ARGS:-} 2>"$OUT/bench.log" |
+timeout "${GPU_BENCH_TIMEOUT:-330}" "$PY" bench/gpu_table.py --data "$DATA" --out "$OUT/gpu.json" ${GPU_TABLE_ARGS:-} 2>"$OUT/bench.log" |
     tee "$OUT/table.txt"
 bench=${PIPESTATUS[0]}
 [ "$bench" -eq 0 ] || grep -A12 Traceback "$OUT/bench.log" | tail -40

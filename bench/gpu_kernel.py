@@ -107,6 +107,7 @@ def _bench_shape(
     return out
 
 
+@torch.no_grad()
 def bench_kernel(data: Path, repeats: int, device: str = "cuda") -> dict[str, float]:
     out: dict[str, float] = {}
     for name, model in _models(data, device).items():

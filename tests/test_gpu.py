@@ -216,6 +216,7 @@ def check_graphed_planner_matches_eager(device: str) -> None:
     assert sorted(graphed._graphs) == [2, 4]
 
 
+@torch.no_grad()
 def check_triton_planner_matches_torch(device: str) -> None:
     """`deploy.planner.kernel: triton` on the GPU: eager, and compiled + CUDA graph, the torch
     planner's plans (float32, IEEE products in the kernel); in bfloat16, the torch bfloat16

@@ -245,9 +245,9 @@ class TritonNets:
         sdp = self.sdp
         goal = s0.new_zeros(len(s0), sdp)
         gmask = s0.new_zeros(sdp)
-        for j, d in enumerate(dims):  # slices, not a list index (no host copy in a CUDA graph)
-            goal[:, d] = goals[:, j]
-            gmask[d] = 1.0
+        for j, d in enumerate(dims):  # device ops only (no host copy in a CUDA graph)
+            goal[:, d].copy_(goals[:, j])
+            gmask.narrow(0, d, 1).fill_(1.0)
         return torch.ops.oposm.goal_rollout(
             eps.contiguous(), s0.contiguous(), s0_n.contiguous(), prior0[0].contiguous(),
             prior0[1].contiguous(), goal, gmask, self.state_mean, self.state_std, self.weights,
