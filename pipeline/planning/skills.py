@@ -27,6 +27,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import torch
 
@@ -34,7 +35,9 @@ from pipeline.model.skill_model import SkillModel
 from pipeline.planning.cem import CEM, CEMConfig, CEMResult, CEMState
 from pipeline.planning.costs import GoalCost
 from pipeline.planning.fused import PlannerNets
-from pipeline.planning.triton_rollout import TritonNets
+
+if TYPE_CHECKING:  # imported where used: Triton is a Linux-only dependency
+    from pipeline.planning.triton_rollout import TritonNets
 
 # `predicted states [B, K, L + 1, sd] -> cost [B, K]`, e.g. `GoalCost`.
 StateCost = Callable[[torch.Tensor], torch.Tensor]
@@ -152,6 +155,8 @@ class SkillPlanner:
         dtype = getattr(torch, self.config.dtype)
         nets = PlannerNets(self.model, dtype)
         if self._fused(cost):
+            from pipeline.planning.triton_rollout import TritonNets
+
             nets = FusedNets(nets, TritonNets(self.model, dtype))
         s0_n = self.model.norm_states(s0)
         prior0 = nets.prior(s0_n)  # once for all K candidates
