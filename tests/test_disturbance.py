@@ -47,7 +47,7 @@ def test_one_push_adds_impulse_over_mass_to_the_velocity():
     spec = PointMazeSpec.create(ENV_ID)
     sim = BatchSim(spec, 1, pushes=Pushes(probability=1.0, impulse=MASS * 1.0))
     sim.reset(np.zeros((1, 4)))
-    sim.seed_pushes([0])
+    sim.seed_slots([0])
     assert sim.step(np.zeros((1, 2))) == {}
     assert np.hypot(*sim.observe()[0, 2:]) == pytest.approx(1.0, abs=0.02)
     assert not sim.datas[0].xfrc_applied.any()  # cleared after the step
@@ -67,7 +67,7 @@ def test_a_slots_pushes_depend_on_its_episode_seed_not_on_the_batch():
     def run(seeds: list[int]) -> np.ndarray:
         sim = BatchSim(spec, len(seeds), pushes=PUSH)
         sim.reset(np.tile(start, (len(seeds), 1)))
-        sim.seed_pushes(seeds)
+        sim.seed_slots(seeds)
         for _ in range(100):
             assert sim.step(np.zeros((len(seeds), 2))) == {}
         return sim.observe()
@@ -81,7 +81,7 @@ def test_a_slots_pushes_depend_on_its_episode_seed_not_on_the_batch():
     assert np.array_equal(still.observe()[0], start)  # no pushes: at rest stays at rest
     unseeded = BatchSim(spec, 1, pushes=PUSH)
     unseeded.reset(start[None])
-    with pytest.raises(RuntimeError, match="seed_pushes"):
+    with pytest.raises(RuntimeError, match="seed_slots"):
         unseeded.step(np.zeros((1, 2)))
 
 

@@ -61,14 +61,19 @@ def test_the_report_puts_runs_beside_ogbench_with_a_verdict(tmp_path):
     better = _run(tmp_path / "better", [45] * 5)
     again = ["--run", f"medium-stitch/sub={better}", "--run", f"medium-stitch/new={better}"]
     again += ["--keep", "--command", "uv run oposm deploy --run better", "--out", str(out)]
+    teleport = _run(tmp_path / "teleport", [30] * 5)  # no published row to compare with
+    again += ["--run", f"teleport/sub={teleport}"]
     subprocess.run([sys.executable, str(SCRIPT), *again], check=True, cwd=ROOT)
     data = json.loads((out / "ogbench-point.json").read_text())
-    assert [r["label"] for r in data["runs"]] == ["sub", "plain", "GCBC (ours)", "sub", "new"]
+    labels = ["sub", "plain", "GCBC (ours)", "sub", "new", "sub"]
+    assert [r["label"] for r in data["runs"]] == labels
     assert data["runs"][3]["tasks"]["ogbench"]["successes"] == 225
     assert data["commands"] == ["uv run oposm deploy ...", "uv run oposm deploy --run better"]
     assert data["machine"] == "the first box"  # kept with the rows
     text = (out / "ogbench-point.md").read_text()
     assert "- medium-stitch: sub 90 (86-93) is above the best published 80 %." in text
+    assert "| teleport | not quoted | not quoted |" in text
+    assert "- teleport: sub 60 (54-66); no published number is quoted here" in text
 
 
 def test_a_run_that_is_not_of_the_ogbench_tasks_is_a_one_line_error(tmp_path):

@@ -43,7 +43,8 @@ class BatchSim:
             fields (e.g. `body_mass`) needs `mujoco.mj_setConst` afterwards: MuJoCo caches
             derived constants such as a constant mass matrix.
         pushes: Random external pushes in every slot (`pipeline.envs.disturbance`), each slot
-            drawing from the generator `seed_pushes` gave it; None: none.
+            drawing from the generator `seed_slots` gave it; None: none. The spec's own random
+            events (OGBench's teleports: `OGBenchMazeSpec.teleport`) draw from it too.
     """
 
     def __init__(
@@ -64,6 +65,10 @@ class BatchSim:
             raise ValueError("every slot's model must have the nominal model's nq, nv and nu")
         self.datas = [mujoco.MjData(m) for m in self.models]
         self.physics_dim = spec.physics_dim
+        # OGBench's teleport: a step that ends at an inbound teleport moves the agent before the
+        # next step (`OGBenchMazeSpec.teleport`); a reset there does not.
+        self._teleports = getattr(spec, "teleports", None)
+        self._teleport_pending = np.zeros(n, dtype=bool)
 
     def __len__(self) -> int:
         return len(self.datas)
@@ -79,10 +84,11 @@ class BatchSim:
             mujoco.mj_resetData(model, data)
             self.spec.set_observation(data, obs)
             mujoco.mj_forward(model, data)
+            self._teleport_pending[i] = False
 
-    def seed_pushes(self, seeds: Sequence[int], rows: Rows = None) -> None:
-        """Give slots `rows` the push generators of episodes with these seeds (a slot's pushes
-        then depend on its episode only, not on the batch)."""
+    def seed_slots(self, seeds: Sequence[int], rows: Rows = None) -> None:
+        """Give slots `rows` the generators of episodes with these seeds, for their random
+        events (pushes, teleports): a slot's then depend on its episode only, not on the batch."""
         for i, seed in zip(self._rows(rows), seeds, strict=True):
             self._push_rngs[i] = push_rng(seed)
 
@@ -103,6 +109,7 @@ class BatchSim:
             mujoco.mj_resetData(model, data)
             mujoco.mj_setState(model, data, state, PHYSICS_SPEC)
             mujoco.mj_forward(model, data)
+            self._teleport_pending[i] = self._at_teleport(data)  # a state a step led to
 
     def get_state(self, rows: Rows = None) -> np.ndarray:
         """Full-physics states `[A, physics_dim]` of slots `rows` (all if None)."""
@@ -140,8 +147,11 @@ class BatchSim:
             force = None
             if self.pushes is not None:
                 force = draw_force(self.pushes, self._slot_rng(i), self.spec.dt)
+            if self._teleport_pending[i]:  # the last step's teleport, deferred
+                self.spec.teleport(self.models[i], data, self._slot_rng(i))
             try:
                 pushed_step(self.spec.control_step, self.models[i], data, action, force)
+                self._teleport_pending[i] = self._at_teleport(data)
             except Exception as exc:  # one slot's failure must not stop the others
                 failed[i] = f"{type(exc).__name__}: {exc}".splitlines()[0]
                 continue
@@ -151,8 +161,14 @@ class BatchSim:
                     break
         return failed
 
+    def _at_teleport(self, data: mujoco.MjData) -> bool:
+        return self._teleports is not None and bool(self._teleports.inside(data.qpos[:2]))
+
     def _slot_rng(self, i: int) -> np.random.Generator:
         rng = self._push_rngs[i]
         if rng is None:
-            raise RuntimeError(f"slot {i} has pushes but no generator: call seed_pushes first")
+            raise RuntimeError(
+                f"slot {i} draws random events (pushes, teleports) but has no generator: call "
+                "seed_slots first"
+            )
         return rng

@@ -23,8 +23,13 @@ the installed ogbench 1.2.2, and checked step for step in tests/test_ogbench.py)
 
 The ant mazes share the maze, tasks and success rule; their state is `qpos + qvel` (29) and a
 step is `MujocoEnv.do_simulation` (ctrl = action, 5 substeps): `OGBenchAntMazeSpec`.
-The teleport mazes are not supported: their step teleports with numpy's global generator, so a
-state and an action do not determine the next state.
+The teleport mazes (`*maze-teleport-v0`) add one random event: after a step that ends within
+1.5 of an inbound teleport's centre, OGBench moves the agent (`set_xy`) to one of the outbound
+teleports, drawn uniformly with numpy's global generator. The observation that step returns is the
+one before the move; the next step starts from the outbound teleport. Here the move is applied at
+the start of the next step instead (`OGBenchMazeSpec.teleport`, drawing from the slot's own
+generator; `BatchSim` remembers which slots' last step ended at a teleport, as a reset there moves
+nothing): the same observations, and a recorded state always holds its observation.
 """
 
 from __future__ import annotations
@@ -46,7 +51,7 @@ from pipeline.errors import UserError
 OGBENCH_MAZES: dict[str, tuple[str, str]] = {
     f"{loco}maze-{size}-v0": (loco, size)
     for loco in ("point", "ant")
-    for size in ("medium", "large", "giant")
+    for size in ("medium", "large", "giant", "teleport")
 }
 # Step limit of an evaluation episode (the registered `max_episode_steps` of these ids).
 EPISODE_STEPS = 1000
@@ -70,11 +75,8 @@ def is_ogbench_maze(env_id: str) -> bool:
 def check_ogbench_id(env_id: str) -> tuple[str, str]:
     """`(locomotion, maze type)` of a supported id; a one-line `UserError` for any other."""
     if env_id not in OGBENCH_MAZES:
-        why = (
-            " (teleport mazes step randomly: not simulatable here)" if "teleport" in env_id else ""
-        )
         raise UserError(
-            f"unsupported OGBench env id {env_id!r}{why}; use one of: {', '.join(OGBENCH_MAZES)}"
+            f"unsupported OGBench env id {env_id!r}; use one of: {', '.join(OGBENCH_MAZES)}"
         )
     return OGBENCH_MAZES[env_id]
 
@@ -185,6 +187,36 @@ def torso_up(quat):
 
 
 @dataclass(frozen=True, eq=False)
+class Teleports:
+    """OGBench's teleports (`MazeEnv._teleport_info`): inbound and outbound centres `[n, 2]`, and
+    how near an inbound centre a step must end to be moved (1.5 x the teleport radius)."""
+
+    inbound: np.ndarray
+    outbound: np.ndarray
+    reach: float
+
+    @classmethod
+    def of_env(cls, env: gymnasium.Env) -> Teleports | None:
+        info = env.unwrapped._teleport_info
+        if info is None:
+            return None
+        inbound = np.array(info["teleport_in_xys"], dtype=np.float64)
+        outbound = np.array(info["teleport_out_xys"], dtype=np.float64)
+        return cls(inbound, outbound, float(info["teleport_radius"]) * 1.5)
+
+    def inside(self, xy: np.ndarray) -> np.ndarray:
+        """`[...]` bool per position `[..., 2]`: within reach of an inbound teleport."""
+        xy = np.asarray(xy, dtype=np.float64)[..., None, :2]
+        return (np.linalg.norm(xy - self.inbound, axis=-1) <= self.reach).any(axis=-1)
+
+    def destination(self, xy: np.ndarray, rng: np.random.Generator) -> np.ndarray | None:
+        """Where an agent at `xy` is moved (one draw from `rng`), or None if it is not moved."""
+        if not self.inside(xy):
+            return None
+        return self.outbound[int(rng.integers(len(self.outbound)))]
+
+
+@dataclass(frozen=True, eq=False)
 class OGBenchMazeSpec:
     """An OGBench maze (`EnvSpec`); the locomotor's parts are in the subclasses.
 
@@ -205,6 +237,7 @@ class OGBenchMazeSpec:
     action_dim: int
     max_episode_steps: int = EPISODE_STEPS
     goal_dims: tuple[int, ...] = (0, 1)
+    teleports: Teleports | None = None
 
     @classmethod
     def create(cls, env_id: str) -> OGBenchMazeSpec:
@@ -222,6 +255,7 @@ class OGBenchMazeSpec:
             goal_tolerance=GOAL_TOLERANCE[loco],
             state_dim=int(env.observation_space.shape[0]),
             action_dim=int(env.action_space.shape[0]),
+            teleports=Teleports.of_env(env),
         )
 
     @property
@@ -232,6 +266,20 @@ class OGBenchMazeSpec:
     def start_observation(self, xy: np.ndarray) -> np.ndarray:
         """The observation of a task start at `xy` (what `MazeEnv.reset` leaves, noise aside)."""
         raise NotImplementedError
+
+    def teleport(
+        self, model: mujoco.MjModel, data: mujoco.MjData, rng: np.random.Generator
+    ) -> bool:
+        """Before a step: move an agent that the last step left at an inbound teleport to an
+        outbound one (`MazeEnv.step`'s teleport, deferred; module docstring). True if moved."""
+        if self.teleports is None:
+            return False
+        out = self.teleports.destination(data.qpos[:2], rng)
+        if out is None:
+            return False
+        data.qpos[:2] = out  # `set_xy`: qvel kept, then `set_state`'s forward pass
+        mujoco.mj_forward(model, data)
+        return True
 
     def observe(self, data: mujoco.MjData) -> np.ndarray:
         raise NotImplementedError

@@ -149,7 +149,7 @@ class _Wave:
         self.goals = np.stack([s.goal for s in specs])
         rows = np.arange(len(specs))
         envs.reset(np.stack([s.start for s in specs]), rows)
-        envs.seed_pushes([s.seed for s in specs], rows)  # used when the env has pushes
+        envs.seed_slots([s.seed for s in specs], rows)  # used when the env has pushes
         self.states = envs.observe(rows)
         self.alive = np.ones(len(specs), dtype=bool)
         for i in rows:

@@ -287,7 +287,7 @@ def run_open_loop(
         generator = torch.Generator().manual_seed(cfg.seed)
         for mode in MODES:
             restore(sim, physics, observed, labels)
-            sim.seed_pushes(push_seeds)
+            sim.seed_slots(push_seeds)
             s0 = torch.as_tensor(sim.observe()[:: cfg.repeats], dtype=torch.float32, device=device)
             if mode == "prior":
                 eps = torch.randn(len(s0), cfg.skills, model.config.z_dim, generator=generator)

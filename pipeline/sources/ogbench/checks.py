@@ -2,7 +2,8 @@
 
 Both locomotors: finite values, actions in [-1, 1], positions in the maze's free cells (and the
 body's smallest clearance to a wall, negative inside one), recorded physics equal to the
-observations, the goal-reach rate when goals are recorded. The point: no jump beyond a step's
+observations, the goal-reach rate when goals are recorded. Steps that start at an inbound teleport
+(the teleport mazes) are exempt from the jump checks. The point: no jump beyond a step's
 reach. The ant (issue 19): falls (torso height outside OGBench's healthy [0.2, 1.0] m, the range
 its direction task ends episodes on, or the torso upside down), and jumps (a torso move beyond a
 step's reach, or one its recorded velocities do not explain: a hidden reset or a teleport).
@@ -76,10 +77,14 @@ def check_ogbench_dataset(
             problems.append(f"episode {ep.index}: actions outside [-1, 1]")
         _check_walls(ep, walls, report, problems)
         _check_physics(ep, spec, problems)
+        # Steps from an inbound teleport move the agent to an outbound one: no jump to check.
+        moves = np.ones(max(len(ep) - 1, 0), dtype=bool)
+        if spec.teleports is not None:
+            moves = ~spec.teleports.inside(ep.observations[:-1, :2])
         if spec.loco == "point":
-            _check_point_steps(ep, report, problems)
+            _check_point_steps(ep, moves, report, problems)
         else:
-            _check_ant(ep, spec, report, problems)
+            _check_ant(ep, spec, moves, report, problems)
         if ep.goal_reached is None:
             has_goals = False
         else:
@@ -126,10 +131,13 @@ def _check_physics(ep: Episode, spec: OGBenchMazeSpec, problems: list[str]) -> N
         problems.append(f"episode {ep.index}: physics qpos differ from the observations")
 
 
-def _check_point_steps(ep: Episode, report: DatasetReport, problems: list[str]) -> None:
-    if len(ep) < 2:
+def _check_point_steps(
+    ep: Episode, moves: np.ndarray, report: DatasetReport, problems: list[str]
+) -> None:
+    """Steps `moves [N - 1]` (those not from a teleport) stay within a step's reach."""
+    if not moves.any():
         return
-    jump = float(np.linalg.norm(np.diff(ep.observations[:, :2], axis=0), axis=1).max())
+    jump = float(np.linalg.norm(np.diff(ep.observations[:, :2], axis=0), axis=1)[moves].max())
     report.max_step_distance = max(report.max_step_distance, jump)
     if jump > _MAX_POINT_STEP:
         problems.append(f"episode {ep.index}: the point jumps {jump:.3f} m in one step")
@@ -145,7 +153,11 @@ def ant_jumps(observations: np.ndarray, nq: int, dt: float) -> tuple[np.ndarray,
 
 
 def _check_ant(
-    ep: Episode, spec: OGBenchMazeSpec, report: DatasetReport, problems: list[str]
+    ep: Episode,
+    spec: OGBenchMazeSpec,
+    moves: np.ndarray,
+    report: DatasetReport,
+    problems: list[str],
 ) -> None:
     obs = ep.observations
     fallen = ant_fallen(obs)
@@ -154,9 +166,10 @@ def _check_ant(
     report.min_torso_height = min(report.min_torso_height, float(obs[:, 2].min()))
     nq = spec.model.nq
     report.max_axis_speed = max(report.max_axis_speed, float(np.abs(obs[:, nq : nq + 2]).max()))
-    if len(ep) < 2:
+    if not moves.any():
         return
     moved, mismatch = ant_jumps(obs, nq, spec.dt)
+    moved, mismatch = np.where(moves, moved, 0.0), np.where(moves, mismatch, 0.0)
     report.max_step_distance = max(report.max_step_distance, float(moved.max()))
     report.max_velocity_mismatch = max(report.max_velocity_mismatch, float(mismatch.max()))
     if moved.max() > _MAX_ANT_STEP or mismatch.max() > _MAX_ANT_MISMATCH:

@@ -40,7 +40,7 @@ from pipeline.dataset import Episode
 from pipeline.devices import torch_threads
 from pipeline.envs.ant import global_seed
 from pipeline.envs.maze import PHYSICS_SPEC
-from pipeline.envs.ogbench import make_ogbench_env
+from pipeline.envs.ogbench import Teleports, make_ogbench_env
 from pipeline.envs.ogbench_oracle import BFSOracle
 from pipeline.sources.common import Clock, ImportedDataset, with_progress
 from pipeline.sources.ogbench.expert import (
@@ -92,6 +92,10 @@ class _Generator:
         self.env = make_ogbench_env(
             recipe.env_id, terminate_at_goal=False, max_episode_steps=recipe.episode_steps
         )
+        # Teleports are applied by `_episode`, deferred by one step (`pipeline.envs.ogbench`), so
+        # that each recorded state holds its observation; the draws are OGBench's, in its order.
+        self.teleports = Teleports.of_env(self.env)
+        self.env.unwrapped._teleport_info = None
         self.free, self.vertex = maze_cells(np.asarray(self.env.unwrapped.maze_map))
         self.oracle = BFSOracle(recipe.env_id)
         self.controller: Controller = point_controller
@@ -110,8 +114,9 @@ class _Generator:
         self.env.action_space.seed(action_space_seed)
         with global_seed(numpy_seed), torch_threads(1):
             return _episode(
-                self.env, self.recipe, rng, self.free, self.vertex, self.oracle, self.controller
-            )
+                self.env, self.recipe, rng, self.free, self.vertex, self.oracle, self.controller,
+                self.teleports,
+            )  # fmt: skip
 
     def close(self) -> None:
         self.env.close()
@@ -166,8 +171,10 @@ def _episode(
     vertex: list,
     oracle: BFSOracle,
     controller: Controller,
+    teleports: Teleports | None = None,
 ) -> dict[str, np.ndarray]:
-    """One episode of `generate_locomaze.py`'s loop."""
+    """One episode of `generate_locomaze.py`'s loop (`teleports`: the maze's, which the env's
+    own step no longer applies)."""
     maze = env.unwrapped
     maze_map = np.asarray(maze.maze_map)
     init_ij = free[rng.integers(len(free))]
@@ -186,9 +193,13 @@ def _episode(
     obs, actions = np.empty((n, ob.shape[0])), np.empty((n, low.shape[0]))
     goals, reached = np.empty((n, 2)), np.zeros(n, dtype=bool)
     direction = np.zeros(2)
+    moved_to = None  # where the last step's teleport puts the agent before this step
     for t in range(n):
         mujoco.mj_getState(maze.model, maze.data, physics[t], PHYSICS_SPEC)
         obs[t], goals[t] = ob, maze.cur_goal_xy
+        if moved_to is not None:
+            maze.set_xy(moved_to)
+            moved_to = None
         if recipe.dataset_type == "explore":
             if t % EXPLORE_EVERY == 0:
                 direction = rng.standard_normal(2)
@@ -198,6 +209,10 @@ def _episode(
         action = controller(ob, direction) + rng.normal(0.0, recipe.noise, low.shape[0])
         actions[t] = action = np.clip(action, low, high)
         ob, _, _, _, step_info = env.step(action)
+        if teleports is not None and teleports.inside(maze.get_xy()):
+            # `MazeEnv.step`'s draw: numpy's global generator (seeded per episode), before
+            # the navigate goal's noise, as in OGBench.
+            moved_to = teleports.outbound[np.random.randint(len(teleports.outbound))]
         reached[t] = bool(step_info["success"])
         if reached[t] and recipe.dataset_type == "navigate":
             maze.set_goal(vertex[rng.integers(len(vertex))])
