@@ -47,6 +47,27 @@ def test_waypoint_leads_round_the_wall_and_is_the_goal_once_within_reach():
     assert 3.0 < x <= 4.2 and y > 3.0
 
 
+def test_windows_with_a_jump_are_no_edges():
+    """A teleport in the data (one step from the left leg's foot to the right one's) links
+    nothing: the feet stay the whole U apart, in skills, as without it."""
+    u = _u_corridor()
+    hop = np.concatenate([u[:20][::-1], u[120:140]])  # down the left leg, then a jump right
+    points = np.concatenate([u, hop])
+    first = np.concatenate([np.arange(len(u) - 5), len(u) + np.arange(len(hop) - 5)])
+    graph = SubgoalGraph.from_windows(points, first, first + 5, cell=0.25, reach=5)
+    feet = torch.tensor([[0.0, 0.0], [4.0, 0.0]])
+    a, b = graph.nearest(feet)
+    plain = _graph()
+    c, d = plain.nearest(feet)
+    assert graph.hops[a, b] == plain.hops[c, d] > 20  # round the U (as an edge: 1 skill)
+    smooth = np.concatenate([u, u[:40]])  # the same windows without a jump: no change
+    first = np.concatenate([np.arange(len(u) - 5), len(u) + np.arange(35)])
+    assert torch.equal(
+        SubgoalGraph.from_windows(smooth, first, first + 5, cell=0.25, reach=5).hops,
+        _graph().hops,
+    )
+
+
 def test_unreachable_goal_and_single_skill_reach():
     points = np.concatenate([_u_corridor(), [[10.0, 10.0], [10.0, 10.1]]])  # an island
     first = np.arange(len(points) - 7)

@@ -9,6 +9,9 @@ graph gives the planner a nearer target that leads round.
   split's states, each at the mean position of its states.
 - **Edges:** every training window links the node of its first state with the node of its last
   state: one skill of the data, T steps. Links go both ways, because the mazes are reversible.
+  A window in which one step moves farther than a cell is no edge: that is not a skill the agent
+  steers but a jump the world makes (OGBench's teleports, which are random, one-way, and in a
+  third of the cases end in a closed cell; a reset). Data without such jumps keeps every window.
 - **Distances:** the fewest skills between any two nodes, by breadth-first search (scipy).
 - **Each replan, per environment:**
   - When the goal's node is at most `reach` skills away, or not connected at all, the target is
@@ -81,8 +84,9 @@ class SubgoalGraph:
         device: torch.device | str = "cpu",
         line_of_sight: bool = False,
     ) -> SubgoalGraph:
-        """Graph of the positions `points [N, G]` the data visits and its windows, each from
-        point `first[w]` to point `last[w]` (`[W]` indices into `points`)."""
+        """Graph of the positions `points [N, G]` the data visits (in order, episode after
+        episode) and its windows, each from point `first[w]` to point `last[w]` (`[W]` indices
+        into `points`, within one episode); windows with a jump (module docstring) are left out."""
         if cell <= 0:
             raise ValueError(f"cell must be > 0, got {cell}")
         if len(first) == 0:
@@ -95,7 +99,9 @@ class SubgoalGraph:
         np.add.at(nodes, node_of, points)
         nodes /= np.bincount(node_of, minlength=m)[:, None]
         a, b = node_of[first], node_of[last]
-        keep = a != b
+        step = np.linalg.norm(np.diff(points, axis=0), axis=1)
+        jumps = np.concatenate([[0], np.cumsum(step > cell)])  # jumps before each point
+        keep = (a != b) & (jumps[last] == jumps[first])
         adjacency = coo_matrix((np.ones(int(keep.sum())), (a[keep], b[keep])), shape=(m, m))
         hops = shortest_path(adjacency.tocsr(), method="D", directed=False, unweighted=True)
         sight = Occupancy(cells, cell, torch.device(device)) if line_of_sight else None
