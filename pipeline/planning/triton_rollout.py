@@ -8,16 +8,18 @@ candidates: all L skill steps, each the prior's five layers and the TAWM mean's 
 the predicted states and the goal cost (the distance to the goal from the predicted state nearest
 to it, plus `skill_penalty` per skill, as `GoalCost`). Each program owns `BM` candidate rows; the
 activations between layers go through a small per-program scratch buffer (L1/L2-resident), and
-the layers are computed in `[BM, BN]` tiles, so the same kernel serves h = 64 ... 256.
+the layers are computed in `[BM, BN]` tiles, so the same kernel serves any hidden size (padded to
+16) and any state and skill size (padded to powers of two); it was timed at h 128 and 256
+(results/speed-gpu.md).
 
 Numerics: float32 weights multiply in IEEE float32 (no TF32), so the kernel gives the eager
-planner's rollout up to summation order (tests/test_planning.py); `bfloat16` multiplies in
-bfloat16 with float32 accumulation, as `PlannerNets` does.
+planner's rollout up to summation order (tests/test_triton_rollout.py, tests/test_gpu.py);
+`bfloat16` multiplies in bfloat16 with float32 accumulation, as `PlannerNets` does.
 
 Triton compiles for a GPU. On a machine without one, Triton's interpreter runs the same kernel
 on CPU tensors through NumPy: orders of magnitude slower, which is what the CPU tests use to check
-the kernel against the eager rollout. Costs other than `GoalCost` (e.g. with a fall test) keep
-the eager rollout.
+the kernel against the eager rollout. Costs other than `GoalCost`, or with a fall test, keep the
+eager rollout (`SkillPlanner._fused`).
 """
 
 from __future__ import annotations
