@@ -88,7 +88,9 @@ def render(runs: list[dict], commands: list[str], machine: str) -> str:
         "navigate rows match REFERENCES.md; teleport: not quoted, as neither source has it). "
         'Subgoal rows without "line of sight" in their '
         "label ran before `deploy.subgoals.line_of_sight` existed (the rule by skill hops alone, "
-        "`line_of_sight: false`). Machine: " + machine + ".",
+        "`line_of_sight: false`). The subgoal graph's jump rule (a window with a step longer "
+        "than a cell is no edge) changes only the teleport data's graph: no other dataset has "
+        "such a step. Machine: " + machine + ".",
         "",
         "| dataset | agent | task 1 | task 2 | task 3 | task 4 | task 5 | overall | episodes |",
         "|---|---|---|---|---|---|---|---|---|",
