@@ -97,8 +97,10 @@ def _bench_shape(
         fused = TritonNets(model, dtype)
         fused.precision, fused.num_warps = precision, warps
 
-        def call(fused: TritonNets = fused) -> torch.Tensor:
-            return fused.rollout_cost(eps, s0, s0_n, prior0, goals, (0, 1), 0.0)[2]
+        goal = fused.goal_inputs(goals, (0, 1))
+
+        def call(fused: TritonNets = fused, goal: tuple = goal) -> torch.Tensor:
+            return fused.rollout_cost(eps, s0, s0_n, prior0, goal, 0.0)[2]
 
         out[f"{key}_{label}_max_cost_diff"] = float((call() - want).abs().max())
         ms = graph_ms(call, repeats)

@@ -239,11 +239,12 @@ def check_triton_planner_matches_torch(device: str) -> None:
     s0_n = model.norm_states(s0)
     prior0 = nets.prior(s0_n)
     states, skills = planner._rollout(eps, nets, s0, s0_n, prior0)
-    got = TritonNets(model, torch.bfloat16).rollout_cost(eps, s0, s0_n, prior0, goals, (0, 1), 0)
+    bf16, fp32 = TritonNets(model, torch.bfloat16), TritonNets(model)
+    got = bf16.rollout_cost(eps, s0, s0_n, prior0, bf16.goal_inputs(goals, (0, 1)), 0)
     torch.testing.assert_close(got[0], states, rtol=5e-2, atol=5e-2)
     torch.testing.assert_close(got[1], skills, rtol=5e-2, atol=5e-2)
-    assert not torch.equal(got[0], TritonNets(model).rollout_cost(  # it ran in bf16
-        eps, s0, s0_n, prior0, goals, (0, 1), 0)[0])  # fmt: skip
+    exact = fp32.rollout_cost(eps, s0, s0_n, prior0, fp32.goal_inputs(goals, (0, 1)), 0)
+    assert not torch.equal(got[0], exact[0])  # it ran in bf16
 
 
 def test_training_objectives_gradients_and_an_em_step_on_cuda_match_cpu():

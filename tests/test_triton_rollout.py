@@ -50,7 +50,8 @@ def test_kernel_equals_the_torch_rollout_and_goal_cost(sd, z, hidden, dims, pena
     prior0 = nets.prior(s0_n)
     states, skills = planner._rollout(eps, nets, s0, s0_n, prior0)
     cost = GoalCost(goals, dims, skill_penalty=penalty)(states)
-    got = TritonNets(model).rollout_cost(eps, s0, s0_n, prior0, goals, dims, penalty)
+    fused = TritonNets(model)
+    got = fused.rollout_cost(eps, s0, s0_n, prior0, fused.goal_inputs(goals, dims), penalty)
     assert states.abs().amax() > 1.0  # the rollout went somewhere
     for ours, theirs in zip(got, (states, skills, cost), strict=True):
         assert ours.shape == theirs.shape

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import functools
 import math
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -217,7 +218,7 @@ class Teleports:
 
 
 @dataclass(frozen=True, eq=False)
-class OGBenchMazeSpec:
+class OGBenchMazeSpec(ABC):
     """An OGBench maze (`EnvSpec`); the locomotor's parts are in the subclasses.
 
     Build it with `OGBenchMazeSpec.create(env_id)` (or `make_env_spec`).
@@ -263,32 +264,33 @@ class OGBenchMazeSpec:
         """`[time, qpos, qvel]` (`mjSTATE_FULLPHYSICS`): 5 for the point, 30 for the ant."""
         return int(mujoco.mj_stateSize(self.model, PHYSICS_SPEC))
 
+    @abstractmethod
     def start_observation(self, xy: np.ndarray) -> np.ndarray:
         """The observation of a task start at `xy` (what `MazeEnv.reset` leaves, noise aside)."""
-        raise NotImplementedError
 
     def teleport(
         self, model: mujoco.MjModel, data: mujoco.MjData, rng: np.random.Generator
-    ) -> bool:
+    ) -> None:
         """Before a step: move an agent that the last step left at an inbound teleport to an
-        outbound one (`MazeEnv.step`'s teleport, deferred; module docstring). True if moved."""
+        outbound one (`MazeEnv.step`'s teleport, deferred; module docstring)."""
         if self.teleports is None:
-            return False
+            return
         out = self.teleports.destination(data.qpos[:2], rng)
-        if out is None:
-            return False
-        data.qpos[:2] = out  # `set_xy`: qvel kept, then `set_state`'s forward pass
-        mujoco.mj_forward(model, data)
-        return True
+        if out is not None:
+            data.qpos[:2] = out  # `set_xy`: qvel kept, then `set_state`'s forward pass
+            mujoco.mj_forward(model, data)
 
+    @abstractmethod
     def observe(self, data: mujoco.MjData) -> np.ndarray:
-        raise NotImplementedError
+        """The observation of the simulator state `data`."""
 
+    @abstractmethod
     def set_observation(self, data: mujoco.MjData, observation: np.ndarray) -> None:
-        raise NotImplementedError
+        """Put `observation` into the simulator state `data`."""
 
+    @abstractmethod
     def control_step(self, model: mujoco.MjModel, data: mujoco.MjData, action: np.ndarray) -> None:
-        raise NotImplementedError
+        """One control step of `action` (the env's `step`, physics only)."""
 
 
 class OGBenchPointMazeSpec(OGBenchMazeSpec):

@@ -157,7 +157,9 @@ class SkillPlanner:
         if self._fused(cost):
             from pipeline.planning.triton_rollout import TritonNets
 
-            nets = FusedNets(nets, TritonNets(self.model, dtype))
+            fused = TritonNets(self.model, dtype)
+            goal = fused.goal_inputs(cost.goals, cost.dims)  # once per plan
+            nets = FusedNets(nets, fused, goal, cost.skill_penalty)
         s0_n = self.model.norm_states(s0)
         prior0 = nets.prior(s0_n)  # once for all K candidates
         if not self.config.compile:
@@ -213,7 +215,7 @@ class SkillPlanner:
         """Objective `[B, K]` of candidates `eps [B, K, L, z]`, and their states, skills, task."""
         if isinstance(nets, FusedNets):  # one kernel: rollout and goal cost (`_fused`)
             states, z, task = nets.triton.rollout_cost(
-                eps, s0, s0_n, prior0, cost.goals, cost.dims, cost.skill_penalty
+                eps, s0, s0_n, prior0, nets.goal, nets.skill_penalty
             )
         else:
             states, z = self._rollout(eps, nets, s0, s0_n, prior0)
@@ -321,10 +323,13 @@ class _GraphedPlan:
 
 @dataclass
 class FusedNets:
-    """`PlannerNets` for the prior at s_0, `TritonNets` for the rollout and its cost."""
+    """`PlannerNets` for the prior at s_0, `TritonNets` for the rollout and its goal cost
+    (`goal`: the plan's goals as the kernel reads them, `TritonNets.goal_inputs`)."""
 
     torch_nets: PlannerNets
     triton: TritonNets
+    goal: tuple[torch.Tensor, torch.Tensor]
+    skill_penalty: float
 
     def prior(self, s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         return self.torch_nets.prior(s)

@@ -231,30 +231,36 @@ class TritonNets:
         self.state_std = _pad(model.state_std.float(), (sdp,))
         self.state_std[self.sd :] = 1.0
 
+    def goal_inputs(
+        self, goals: torch.Tensor, dims: tuple[int, ...]
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """`goals [B, G]` on state `dims` as the kernel reads them, once per plan: the goal in
+        state layout `[B, SDP]` and the mask of goal dims `[SDP]`. Device ops only (no host
+        copy: a CUDA graph may be capturing)."""
+        goal = goals.new_zeros(len(goals), self.sdp)
+        mask = goals.new_zeros(self.sdp)
+        for j, d in enumerate(dims):
+            goal[:, d].copy_(goals[:, j])
+            mask.narrow(0, d, 1).fill_(1.0)
+        return goal, mask
+
     def rollout_cost(
         self,
         eps: torch.Tensor,
         s0: torch.Tensor,
         s0_n: torch.Tensor,
         prior0: tuple[torch.Tensor, torch.Tensor],
-        goals: torch.Tensor,
-        dims: tuple[int, ...],
+        goal: tuple[torch.Tensor, torch.Tensor],
         skill_penalty: float,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Candidates `eps [B, K, L, z]` from `s0 [B, sd]` (raw; `s0_n` normalized, `prior0` its
         prior mean and std `[B, z]`) -> raw states `[B, K, L + 1, sd]` (s_0 first), skills
-        `[B, K, L, z]` and the goal cost `[B, K]` of `goals [B, G]` on state `dims`."""
-        sdp = self.sdp
-        goal = s0.new_zeros(len(s0), sdp)
-        gmask = s0.new_zeros(sdp)
-        for j, d in enumerate(dims):  # device ops only (no host copy in a CUDA graph)
-            goal[:, d].copy_(goals[:, j])
-            gmask.narrow(0, d, 1).fill_(1.0)
+        `[B, K, L, z]` and the goal cost `[B, K]` of `goal` (`goal_inputs`)."""
         return torch.ops.oposm.goal_rollout(
             eps.contiguous(), s0.contiguous(), s0_n.contiguous(), prior0[0].contiguous(),
-            prior0[1].contiguous(), goal, gmask, self.state_mean, self.state_std, self.weights,
-            float(skill_penalty), self.min_std, self.h, self.bk, self.bn, self.precision,
-            self.num_warps,
+            prior0[1].contiguous(), goal[0], goal[1], self.state_mean, self.state_std,
+            self.weights, float(skill_penalty), self.min_std, self.h, self.bk, self.bn,
+            self.precision, self.num_warps,
         )  # fmt: skip
 
 
@@ -281,8 +287,7 @@ def _goal_rollout(
     num_warps: int,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     b, k, n_skills, z_dim = eps.shape
-    sd, sdp = s0.shape[1], goal.shape[1]
-    zp = max(16, 1 << (z_dim - 1).bit_length())
+    sd, sdp, zp = s0.shape[1], goal.shape[1], _pow2(z_dim)
     states = eps.new_empty(b, k, n_skills + 1, sd)
     skills = torch.empty_like(eps)
     cost = eps.new_empty(b, k)
