@@ -601,18 +601,37 @@ def export_lerobot(
 @_user_errors
 def bench_train(
     steps: Annotated[int, typer.Option(help="Timed update steps.")] = 50,
+    dtypes: Annotated[
+        str | None,
+        typer.Option(
+            help="Comma-separated train.dtype values to time one after the other, with the "
+            "ratio of each to the first (e.g. float32,bfloat16); default: train.dtype."
+        ),
+    ] = None,
     params: ParamsOption = Path("params.yaml"),
     set_: SetOption = None,
     data: DataOption = Path("data"),
 ) -> None:
     """EM (or VI) update steps/s and sub-trajectories/s at the train params' model size.
 
-    Needs the segments (`oposm segment`). Compare configs with -p params-paper.yaml.
+    Needs the segments (`oposm segment`). Compare configs with -p params-paper.yaml, and
+    precisions with --dtypes float32,bfloat16.
     """
     from bench.train import bench_train as run
+    from bench.train import bench_train_dtypes
     from pipeline.paths import Paths
 
-    _print_numbers(run(_load(params, set_), Paths(data), steps))
+    loaded = _load(params, set_)
+    if dtypes is None:
+        _print_numbers(run(loaded, Paths(data), steps))
+        return
+    names = [d.strip() for d in dtypes.split(",") if d.strip()]
+    allowed = ("float32", "bfloat16")
+    if not names or any(d not in allowed for d in names):
+        raise UserError(
+            f"--dtypes takes a comma-separated list of {' and '.join(allowed)}, got {dtypes!r}"
+        )
+    _print_numbers(bench_train_dtypes(loaded, Paths(data), steps, names), width=36)
 
 
 @bench_app.command("plan")

@@ -38,6 +38,7 @@ TARGETS = {  # issue 16, measured on one GPU
     "train_paper_windows_per_s": (">=", 50_000.0),
     "train_paper_graph_windows_per_s": (">=", 50_000.0),
     "train_paper_compiled_graph_windows_per_s": (">=", 50_000.0),
+    "train_paper_graph_bf16_windows_per_s": (">=", 50_000.0),
 }
 
 
@@ -46,11 +47,16 @@ def _sections(args: argparse.Namespace) -> dict[str, Callable[[], dict[str, floa
     data, device = Paths(args.data), args.device
 
     def train(
-        params: str, label: str, compile: bool, graph: bool = False, batch: int | None = None
+        params: str,
+        label: str,
+        compile: bool,
+        graph: bool = False,
+        batch: int | None = None,
+        dtype: str = "float32",
     ) -> Callable[[], dict[str, float]]:
         def run() -> dict[str, float]:
             over = [f"train.device={device}", f"train.compile={str(compile).lower()}"]
-            over += [f"train.cuda_graph={str(graph).lower()}"]
+            over += [f"train.cuda_graph={str(graph).lower()}", f"train.dtype={dtype}"]
             over += [f"train.batch_size={batch}"] if batch else []
             got = bench_train(load_params(Path(params), over), data, args.train_steps)
             return {f"train_{label}_{k}": v for k, v in got.items()}
@@ -78,6 +84,9 @@ def _sections(args: argparse.Namespace) -> dict[str, Callable[[], dict[str, floa
         "params-paper.yaml", "paper_graph_b1000", False, True, 1000
     )
     sections["train_default_graph"] = train("params.yaml", "default_graph", False, True)
+    sections["train_paper_graph_bf16"] = train(  # train.dtype bfloat16 (autocast)
+        "params-paper.yaml", "paper_graph_bf16", False, True, dtype="bfloat16"
+    )
     if args.compile:
         sections["train_paper_compiled"] = train("params-paper.yaml", "paper_compiled", True)
         sections["train_paper_compiled_graph"] = train(

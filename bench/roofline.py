@@ -1,5 +1,6 @@
 """The machine's matrix-multiply throughput, measured: the roofline the benchmarks' achieved
-GFLOP/s are set against (float32, the precision training and planning run in)."""
+GFLOP/s are set against, in the precision the benchmarked code multiplies in (float32 unless
+`train.dtype` says bfloat16)."""
 
 from __future__ import annotations
 
@@ -13,10 +14,17 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def matmul_gflops(device: torch.device, m: int, k: int, n: int, seconds: float = 0.5) -> float:
-    """Measured GFLOP/s of `[m, k] @ [k, n]` float32 products on `device` (after a warm-up)."""
-    a = torch.randn(m, k, device=device)
-    b = torch.randn(k, n, device=device)
+def matmul_gflops(
+    device: torch.device,
+    m: int,
+    k: int,
+    n: int,
+    seconds: float = 0.5,
+    dtype: torch.dtype = torch.float32,
+) -> float:
+    """Measured GFLOP/s of `[m, k] @ [k, n]` products in `dtype` on `device` (after a warm-up)."""
+    a = torch.randn(m, k, device=device, dtype=dtype)
+    b = torch.randn(k, n, device=device, dtype=dtype)
     for _ in range(3):
         a @ b
     _sync(device)
@@ -31,10 +39,16 @@ def matmul_gflops(device: torch.device, m: int, k: int, n: int, seconds: float =
     return flops * repeats / elapsed / 1e9
 
 
-def roofline(device: torch.device, hidden: int) -> dict[str, float]:
-    """The best of a large square product and of planner-shaped ones (`[rows, h] @ [h, h]`)."""
+def roofline(
+    device: torch.device, hidden: int, dtype: torch.dtype = torch.float32
+) -> dict[str, float]:
+    """The best of a large square product and of planner-shaped ones (`[rows, h] @ [h, h]`), in
+    `dtype`."""
     big = 4096 if device.type == "cuda" else 1024
     shapes = {"square": (big, big, big), "layer": (6400, hidden, hidden)}
-    out = {f"matmul_{name}_gflops": matmul_gflops(device, *shape) for name, shape in shapes.items()}
+    out = {
+        f"matmul_{name}_gflops": matmul_gflops(device, *shape, dtype=dtype)
+        for name, shape in shapes.items()
+    }
     out["roofline_gflops"] = max(out.values())
     return out

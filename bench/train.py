@@ -1,6 +1,7 @@
 """Training benchmark (`oposm bench train`): EM (or VI) steps/s, sub-trajectories (windows)/s,
 FLOPs per step (the matrix products of forward and backward passes, counted by torch) and the
-achieved GFLOP/s against a matrix-multiply measurement of the same device (`bench/roofline.py`)."""
+achieved GFLOP/s against a matrix-multiply measurement of the same device in `train.dtype`
+(`bench/roofline.py`)."""
 
 from __future__ import annotations
 
@@ -37,8 +38,8 @@ def bench_train(params: Params, paths: Paths, steps: int, warmup: int = 5) -> di
     segments = load_segments(paths.segments(params.ingest.name))
     with torch_threads(auto_threads(cfg.threads) if device.type == "cpu" else None):
         log.info(
-            "timing %d %s steps (after %d warm-up) on %s: z %d, hidden %d, batch %d%s",
-            steps, cfg.method, warmup, device, cfg.z_dim, cfg.hidden, cfg.batch_size,
+            "timing %d %s steps (after %d warm-up) on %s: z %d, hidden %d, batch %d, %s%s",
+            steps, cfg.method, warmup, device, cfg.z_dim, cfg.hidden, cfg.batch_size, cfg.dtype,
             ", CUDA graphs" if cfg.cuda_graph and device.type == "cuda" else "",
         )  # fmt: skip
         out: dict[str, float] = {"load_1min_before": os.getloadavg()[0]}
@@ -53,7 +54,13 @@ def bench_train(params: Params, paths: Paths, steps: int, warmup: int = 5) -> di
         )
         model = SkillModel(config).to(device)
         updater = make_updater(
-            cfg.method, model, cfg.lr_e, cfg.lr_m, cfg.grad_clip, compile=cfg.compile
+            cfg.method,
+            model,
+            cfg.lr_e,
+            cfg.lr_m,
+            cfg.grad_clip,
+            compile=cfg.compile,
+            dtype=cfg.dtype,
         )
         sampler = WindowSampler(segments, "train", device, cfg.seed)
         with FlopCounterMode(display=False) as counter:  # eager: a graph replay is not seen
@@ -79,6 +86,22 @@ def bench_train(params: Params, paths: Paths, steps: int, warmup: int = 5) -> di
             "threads": float(torch.get_num_threads()),
             "load_1min_after": os.getloadavg()[0],
         }
-        out |= roofline(device, cfg.hidden)
+        out |= roofline(device, cfg.hidden, getattr(torch, cfg.dtype))  # in train.dtype
         out["roofline_fraction"] = out["gflops"] / out["roofline_gflops"]
+    return out
+
+
+def bench_train_dtypes(
+    params: Params, paths: Paths, steps: int, dtypes: list[str]
+) -> dict[str, float]:
+    """`bench_train` once per `train.dtype` in `dtypes`, in this process one after the other;
+    each number prefixed with its dtype, and each dtype's steps/s over the first's."""
+    out: dict[str, float] = {}
+    for dtype in dtypes:
+        train = params.train.model_copy(update={"dtype": dtype})
+        got = bench_train(params.model_copy(update={"train": train}), paths, steps)
+        out |= {f"{dtype}/{k}": v for k, v in got.items()}
+    for dtype in dtypes[1:]:
+        ratio = out[f"{dtype}/steps_per_s"] / out[f"{dtypes[0]}/steps_per_s"]
+        out[f"{dtype}_over_{dtypes[0]}"] = ratio
     return out

@@ -254,6 +254,12 @@ class TrainParams(_Section):
         description="On CUDA, replay each step as CUDA graphs (the same update, without the "
         "host's launch overhead; single process). Ignored on CPU.",
     )
+    dtype: Literal["float32", "bfloat16"] = Field(
+        "float32",
+        description="What the hidden layers and the posterior's GRU multiply in. bfloat16 "
+        "(torch.autocast): about twice the steps/s on CPUs with AVX512-BF16 and on GPUs; weights, "
+        "Adam, output layers, losses and validation stay float32.",
+    )
 
 
 class DynamicsParams(_Section):

@@ -143,6 +143,7 @@ def _train(
         cfg.grad_clip,
         _grad_reducer(accelerator),
         cfg.compile,
+        cfg.dtype,
     )
     if cfg.cuda_graph and accelerator.device.type == "cuda":
         updater = CudaGraphUpdater(updater)

@@ -3,12 +3,13 @@ matmul roofline: the reference optimizes the same objective as the batched plann
 
 from pathlib import Path
 
+import pytest
 import torch
 from factories import make_info, make_skill_episodes
 
 from bench.reference import ReferencePlanner
 from bench.roofline import matmul_gflops
-from bench.train import bench_train
+from bench.train import bench_train, bench_train_dtypes
 from pipeline.config import load_params
 from pipeline.model import SkillModel, SkillModelConfig
 from pipeline.model.rollout import rollout_skills
@@ -67,3 +68,23 @@ def test_bench_train_times_steps_of_the_params_model_with_threads_auto(tmp_path)
     got = bench_train(params, paths, steps=3, warmup=1)
     assert got["windows_per_s"] == 8 * got["steps_per_s"] > 0
     assert got["flops_per_step"] > 0 and 0 < got["roofline_fraction"] < 1
+
+
+def test_bench_train_times_each_dtype_and_their_ratio(tmp_path):
+    """`oposm bench train --dtypes float32,bfloat16`: both precisions timed, each against its
+    own roofline, and the ratio of their steps/s."""
+    episodes = make_skill_episodes(n_episodes=10, length=60, seed=0)
+    split = {"train": 0.8, "validation": 0.1, "test": 0.1}
+    segments = build_segments(episodes, make_info("skills", physics_dim=0), 11, 1, split, seed=0)
+    params = load_params(
+        ROOT / "params.yaml",
+        ["ingest.name=tiny", "train.device=cpu", "train.hidden=16", "train.z_dim=4",
+         "train.batch_size=8", "train.threads=1"],
+    )  # fmt: skip
+    paths = Paths(tmp_path)
+    save_segments(segments, paths.segments("tiny"))
+    got = bench_train_dtypes(params, paths, steps=2, dtypes=["float32", "bfloat16"])
+    for dtype in ("float32", "bfloat16"):
+        assert got[f"{dtype}/steps_per_s"] > 0 and got[f"{dtype}/roofline_gflops"] > 0
+    ratio = got["bfloat16/steps_per_s"] / got["float32/steps_per_s"]
+    assert got["bfloat16_over_float32"] == pytest.approx(ratio)

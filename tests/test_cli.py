@@ -363,3 +363,8 @@ def test_metrics_option_puts_the_headline_numbers_where_asked(tmp_path, monkeypa
     assert runner.invoke(app, args).exit_code == 0
     assert json.loads((tmp_path / "variant/metrics/ingest.json").read_text())["episodes"] == 4
     assert (tmp_path / "variant/demos/tiny.mcap").exists() and not (tmp_path / "metrics").exists()
+
+
+def test_bench_train_rejects_an_unknown_dtype_in_one_line():
+    result = runner.invoke(app, ["bench", "train", "--dtypes", "float32,float16"])
+    assert "--dtypes" in _one_line_error(result) and "float16" in result.stderr

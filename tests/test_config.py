@@ -164,8 +164,10 @@ def test_runnable_others_sees_a_busy_process_and_not_this_ones_threads():
         busy.wait()
 
 
-def test_training_numbers_do_not_depend_on_the_thread_count():
-    """What lets `AutoThreads` switch mid-run: an EM step gives the same bits on 1 and 2 threads."""
+@pytest.mark.parametrize("dtype", ["float32", "bfloat16"])
+def test_training_numbers_do_not_depend_on_the_thread_count(dtype):
+    """What lets `AutoThreads` switch mid-run: an EM step gives the same bits on 1 and 2 threads
+    (in either `train.dtype`)."""
     from pipeline.model import SkillModel, SkillModelConfig
     from pipeline.training.data import WindowBatch
     from pipeline.training.updaters import EMUpdater
@@ -177,7 +179,7 @@ def test_training_numbers_do_not_depend_on_the_thread_count():
             torch.set_num_threads(threads)
             torch.manual_seed(0)
             model = SkillModel(SkillModelConfig(4, 2, z_dim=16, hidden=128))
-            updater = EMUpdater(model, lr_e=1e-3, lr_m=1e-3)
+            updater = EMUpdater(model, lr_e=1e-3, lr_m=1e-3, dtype=dtype)
             generator = torch.Generator().manual_seed(1)
             states = torch.randn(64, 11, 4, generator=generator)
             actions = torch.randn(64, 10, 2, generator=generator)

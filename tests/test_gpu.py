@@ -107,9 +107,9 @@ def check_compiled_training_step_matches_eager(device: str) -> None:
 
 
 def check_cuda_graph_training_matches_eager(device: str) -> None:
-    """`train.cuda_graph`: EM and VI steps replayed as CUDA graphs (step 1 eager, capture on
-    step 2) draw the same skills and end at eager's weights and metrics, batch after batch;
-    a non-finite batch changes nothing."""
+    """`train.cuda_graph`: EM and VI steps (and EM in bfloat16) replayed as CUDA graphs (step 1
+    eager, capture on step 2) draw the same skills and end at eager's weights and metrics, batch
+    after batch; a non-finite batch changes nothing."""
     g = torch.Generator().manual_seed(6)
     batches = [
         WindowBatch(
@@ -124,6 +124,8 @@ def check_cuda_graph_training_matches_eager(device: str) -> None:
         for make in (
             lambda m: EMUpdater(m, 1e-3, 1e-3, grad_clip=1.0),
             lambda m: VIUpdater(m, 1e-3),
+            # train.dtype bfloat16: autocast inside the captured losses (no weight-cast cache)
+            lambda m: EMUpdater(m, 1e-3, 1e-3, grad_clip=1.0, dtype="bfloat16"),
         ):
             runs = []
             for graphed in (False, True):

@@ -1,4 +1,10 @@
-"""Building blocks of appendix C: a 2-layer ReLU trunk and Gaussian mean / std heads."""
+"""Building blocks of appendix C: a 2-layer ReLU trunk and Gaussian mean / std heads.
+
+Under `torch.autocast` (`train.dtype: bfloat16`) the hidden layers multiply in the low precision,
+but each head's output layer, the softplus and everything downstream (log-likelihoods, losses) stay
+float32: the outputs are what the losses compare with data, and those layers are a few percent of
+the products.
+"""
 
 from __future__ import annotations
 
@@ -31,9 +37,18 @@ class GaussianHead(nn.Module):
         self.min_std = min_std
 
     def forward(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """`h [..., in_dim]` -> mean, std `[..., out_dim]`."""
-        std = F.softplus(self.std(h)) + self.min_std
-        return self.mean(h), std.expand(*h.shape[:-1], self.out_dim)
+        """`h [..., in_dim]` -> mean, std `[..., out_dim]` (float32 under autocast too)."""
+        std = F.softplus(_float32_output(self.std, h)) + self.min_std
+        return _float32_output(self.mean, h), std.expand(*h.shape[:-1], self.out_dim)
+
+
+def _float32_output(net: nn.Sequential, h: torch.Tensor) -> torch.Tensor:
+    """`net(h)`, its last (output) layer in float32 when autocast is on."""
+    if not torch.is_autocast_enabled(h.device.type):
+        return net(h)
+    hidden = net[:-1](h)
+    with torch.autocast(h.device.type, enabled=False):
+        return net[-1](hidden.float())
 
 
 class GaussianMLP(nn.Module):
