@@ -257,8 +257,9 @@ class TrainParams(_Section):
     dtype: Literal["float32", "bfloat16"] = Field(
         "float32",
         description="What the hidden layers and the posterior's GRU multiply in. bfloat16 "
-        "(torch.autocast): about twice the steps/s on CPUs with AVX512-BF16 and on GPUs; weights, "
-        "Adam, output layers, losses and validation stay float32.",
+        "(torch.autocast): 1.9x the steps/s on a CPU with AVX512-BF16 (slower without it or "
+        "AMX; GPUs not yet measured); weights, Adam, output layers, losses and validation stay "
+        "float32.",
     )
 
 
