@@ -625,8 +625,12 @@ def bench_train(
     if dtypes is None:
         _print_numbers(run(loaded, Paths(data), steps))
         return
+    from typing import get_args
+
+    from pipeline.config import TrainParams
+
     names = [d.strip() for d in dtypes.split(",") if d.strip()]
-    allowed = ("float32", "bfloat16")
+    allowed = get_args(TrainParams.model_fields["dtype"].annotation)  # train.dtype's values
     if not names or any(d not in allowed for d in names):
         raise UserError(
             f"--dtypes takes a comma-separated list of {' and '.join(allowed)}, got {dtypes!r}"

@@ -17,7 +17,6 @@ same seeds and goals). `--command` lists the commands that produced them, in ord
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
@@ -26,8 +25,9 @@ from pathlib import Path
 from scipy.stats import binomtest
 
 from pipeline.errors import UserError
-from pipeline.evaluation.proportions import difference_interval, wilson_interval
+from pipeline.evaluation.proportions import difference_interval
 from pipeline.io import atomic_path, write_json
+from stages.results_common import pct, rate, read
 
 ROOT = Path(__file__).resolve().parents[1]
 TRAIN_KEYS = ("best_step", "best_val_st_nll_prior", "best_val_st_nll", "val_action_nll",
@@ -42,12 +42,11 @@ def _labelled(text: str, what: str) -> tuple[str, Path]:
 
 
 def _read_json(path: Path) -> object:
-    try:
-        return json.loads(path.read_text())
-    except FileNotFoundError:
-        raise UserError(f"{path} does not exist; run the command that writes it first") from None
-    except json.JSONDecodeError as exc:
-        raise UserError(f"{path} is not valid JSON ({exc.msg}); rerun its command") from None
+    """`path`'s JSON (`results_common.read`); a missing file is a `UserError` too."""
+    data = read(path)
+    if data is None:
+        raise UserError(f"{path} does not exist; run the command that writes it first")
+    return data
 
 
 def _episodes(run_dir: Path) -> dict[tuple[str, int], dict]:
@@ -59,14 +58,11 @@ def _episodes(run_dir: Path) -> dict[tuple[str, int], dict]:
 
 
 def success_rows(episodes: dict[tuple[str, int], dict]) -> dict[str, dict]:
-    """Per task and over all: successes, episodes, the rate and its Wilson interval."""
+    """Per task and over all: successes, episodes, the rate and its Wilson interval (`rate`)."""
     out = {}
     for task in [*sorted({t for t, _ in episodes}), "all"]:
         chosen = [e for (t, _), e in episodes.items() if task in ("all", t)]
-        wins = sum(bool(e["success"]) for e in chosen)
-        low, high = wilson_interval(wins, len(chosen))
-        out[task] = {"successes": wins, "episodes": len(chosen), "rate": wins / len(chosen),
-                     "interval": [low, high]}  # fmt: skip
+        out[task] = rate(sum(bool(e["success"]) for e in chosen), len(chosen))
     return out
 
 
@@ -98,10 +94,6 @@ def paired(a: dict[tuple[str, int], dict], b: dict[tuple[str, int], dict]) -> di
                      "difference": (wins_a - wins_b) / len(keys),
                      "difference_interval": [low, high]}  # fmt: skip
     return out
-
-
-def _pct(x: float) -> str:
-    return f"{100 * x:.1f}"
 
 
 def markdown(report: dict) -> str:
@@ -145,7 +137,7 @@ def markdown(report: dict) -> str:
         ]
         for label, rows in report["deploy"].items():
             cells = [
-                f"{_pct(r['rate'])} [{_pct(r['interval'][0])}, {_pct(r['interval'][1])}], "
+                f"{pct(r['rate'])} [{pct(r['ci95'][0])}, {pct(r['ci95'][1])}], "
                 f"{r['successes']}/{r['episodes']}"
                 for r in (rows[t] for t in [*tasks, "all"])
             ]

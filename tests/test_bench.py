@@ -52,19 +52,25 @@ def test_matmul_roofline_is_measured():
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def test_bench_train_times_steps_of_the_params_model_with_threads_auto(tmp_path):
-    """`oposm bench train` with the params' defaults (`train.threads: auto`) on saved segments."""
+def _tiny_training(tmp_path: Path, *overrides: str):
+    """Params of a tiny skill model (batch 8) and `Paths` under `tmp_path` holding its segments."""
     episodes = make_skill_episodes(n_episodes=10, length=60, seed=0)
     split = {"train": 0.8, "validation": 0.1, "test": 0.1}
     segments = build_segments(episodes, make_info("skills", physics_dim=0), 11, 1, split, seed=0)
     params = load_params(
         ROOT / "params.yaml",
         ["ingest.name=tiny", "train.device=cpu", "train.hidden=16", "train.z_dim=4",
-         "train.batch_size=8"],
+         "train.batch_size=8", *overrides],
     )  # fmt: skip
-    assert params.train.threads == "auto"
     paths = Paths(tmp_path)
     save_segments(segments, paths.segments("tiny"))
+    return params, paths
+
+
+def test_bench_train_times_steps_of_the_params_model_with_threads_auto(tmp_path):
+    """`oposm bench train` with the params' defaults (`train.threads: auto`) on saved segments."""
+    params, paths = _tiny_training(tmp_path)
+    assert params.train.threads == "auto"
     got = bench_train(params, paths, steps=3, warmup=1)
     assert got["windows_per_s"] == 8 * got["steps_per_s"] > 0
     assert got["flops_per_step"] > 0 and 0 < got["roofline_fraction"] < 1
@@ -73,16 +79,7 @@ def test_bench_train_times_steps_of_the_params_model_with_threads_auto(tmp_path)
 def test_bench_train_times_each_dtype_and_their_ratio(tmp_path):
     """`oposm bench train --dtypes float32,bfloat16`: both precisions timed, each against its
     own roofline, and the ratio of their steps/s."""
-    episodes = make_skill_episodes(n_episodes=10, length=60, seed=0)
-    split = {"train": 0.8, "validation": 0.1, "test": 0.1}
-    segments = build_segments(episodes, make_info("skills", physics_dim=0), 11, 1, split, seed=0)
-    params = load_params(
-        ROOT / "params.yaml",
-        ["ingest.name=tiny", "train.device=cpu", "train.hidden=16", "train.z_dim=4",
-         "train.batch_size=8", "train.threads=1"],
-    )  # fmt: skip
-    paths = Paths(tmp_path)
-    save_segments(segments, paths.segments("tiny"))
+    params, paths = _tiny_training(tmp_path, "train.threads=1")
     got = bench_train_dtypes(params, paths, steps=2, dtypes=["float32", "bfloat16"])
     for dtype in ("float32", "bfloat16"):
         assert got[f"{dtype}/steps_per_s"] > 0 and got[f"{dtype}/roofline_gflops"] > 0
