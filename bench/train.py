@@ -61,6 +61,7 @@ def bench_train(params: Params, paths: Paths, steps: int, warmup: int = 5) -> di
             cfg.grad_clip,
             compile=cfg.compile,
             dtype=cfg.dtype,
+            e_kl=cfg.e_kl,
         )
         sampler = WindowSampler(segments, "train", device, cfg.seed)
         with FlopCounterMode(display=False) as counter:  # eager: a graph replay is not seen

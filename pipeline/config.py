@@ -207,6 +207,12 @@ class TrainParams(_Section):
     )
     min_std: float = Field(1e-4, gt=0, description="Floor added to every predicted std.")
     batch_size: int = Field(100, ge=1, description="Windows per update step (paper: 100).")
+    e_kl: Literal["sampled", "closed_form"] = Field(
+        "sampled",
+        description="The E-step's KL(q || prior). sampled: log q - log p at the drawn skill (eq. "
+        "15 as the paper's code computes it); closed_form: the two Gaussians' KL, as vi "
+        "computes it (the same objective with less noise; em only).",
+    )
     lr_e: float = Field(2.5e-4, gt=0, description="Adam learning rate of the E-step (paper: 5e-5).")
     lr_m: float = Field(
         2.5e-4, gt=0, description="Adam learning rate of the M-step and of vi (paper: 5e-5)."

@@ -144,6 +144,7 @@ def _train(
         _grad_reducer(accelerator),
         cfg.compile,
         cfg.dtype,
+        cfg.e_kl,
     )
     if cfg.cuda_graph and accelerator.device.type == "cuda":
         updater = CudaGraphUpdater(updater)

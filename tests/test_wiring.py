@@ -18,6 +18,7 @@ from pipeline.model import SkillModel, SkillModelConfig
 from pipeline.training.data import WindowBatch
 from pipeline.training.losses import (
     e_objective,
+    e_objective_closed_form,
     e_step_loss,
     m_objective,
     m_step_loss,
@@ -125,6 +126,42 @@ def test_eq15_e_objective_matches_the_independent_computation():
     torch.testing.assert_close(e_objective(model, batch, q, z), _eq15(model, batch, z), **TOL)
 
 
+def _eq15_closed_form(model, batch, z):
+    """-1/B sum_i [log pi - KL(q || p_omega)] (`train.e_kl: closed_form`)."""
+    r = _log_terms(model, batch, z)
+    return -(r["log_pi"] - _kl_q_prior(model, batch)).sum() / B
+
+
+def test_eq15_closed_form_e_objective_matches_the_independent_computation():
+    model, batch, z = _model(), _batch(), _z()
+    q = model.posterior_dist(batch.states[:, :-1], batch.actions)
+    got = e_objective_closed_form(model, batch, q, z)
+    torch.testing.assert_close(got, _eq15_closed_form(model, batch, z), **TOL)
+    assert abs(got - e_objective(model, batch, q, z)) > 1e-3  # another estimator at one z
+
+
+def test_eq15_closed_form_and_sampled_kl_agree_in_expectation_over_z():
+    """Over many z ~ q the two E objectives average to the same value (log q - log p at z ~ q
+    averages to the KL), so `e_kl` changes the noise of the E-step, not its objective."""
+    model, batch = _model(), _batch()
+    q = model.posterior_dist(batch.states[:, :-1], batch.actions)
+    with torch.no_grad():
+        diffs = torch.stack([
+            e_objective(model, batch, q, z) - e_objective_closed_form(model, batch, q, z)
+            for z in q.sample((4000,))
+        ])  # fmt: skip
+    assert diffs.std() > 0.1  # the sampled KL is noisy at one z
+    assert abs(diffs.mean()) < 4 * diffs.std() / 4000**0.5
+
+
+def test_e_step_loss_with_the_closed_form_kl():
+    model, batch = _model(), _batch()
+    torch.manual_seed(7)
+    loss, _ = e_step_loss(model, batch, kl="closed_form")
+    want = _eq15_closed_form(model, batch, _rsample_z(model, batch, seed=7))
+    torch.testing.assert_close(loss, want, **TOL)
+
+
 def test_eq16_m_objective_and_its_terms_match_the_independent_computation():
     model, batch, z = _model(), _batch(), _z()
     loss, terms = m_objective(model, batch, z)
@@ -168,6 +205,16 @@ def _assert_grads_equal(got_params, want_grads, what):
     for i, (p, g) in enumerate(zip(got_params, want_grads, strict=True)):
         assert p.grad is not None, f"{what}: parameter {i} got no gradient"
         torch.testing.assert_close(p.grad, g, **TOL, msg=f"{what}: parameter {i}")
+
+
+def test_em_step_with_the_closed_form_kl_differentiates_it_in_phi():
+    model, batch = _model(), _batch()
+    ref = copy.deepcopy(model)
+    torch.manual_seed(3)
+    EMUpdater(model, lr_e=1e-2, lr_m=1e-2, e_kl="closed_form").e_step(batch)
+    z_e = _rsample_z(ref, batch, seed=3)
+    want = _grads(_eq15_closed_form(ref, batch, z_e), list(ref.posterior.parameters()))
+    _assert_grads_equal(list(model.posterior.parameters()), want, "E-step, closed-form KL")
 
 
 def test_em_step_differentiates_eq15_in_phi_through_z_then_eq16_in_theta_psi_omega():

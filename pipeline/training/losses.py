@@ -32,16 +32,29 @@ def e_objective(
     return -(log_pi + log_prior - q.log_prob(z)).mean()
 
 
+def e_objective_closed_form(
+    model: SkillModel, batch: WindowBatch, q: Independent, z: torch.Tensor
+) -> torch.Tensor:
+    """Eq. 15 with the KL to the prior in closed form: -mean[log pi(a|s,z) - KL(q || p_omega)].
+    Equal to `e_objective` in expectation over z ~ q, with less noise."""
+    kl = kl_divergence(q, model.prior_dist(batch.states[:, 0]))
+    return -(policy_log_prob(model, batch, z) - kl).mean()
+
+
+E_OBJECTIVES = {"sampled": e_objective, "closed_form": e_objective_closed_form}
+
+
 def e_step_loss(
-    model: SkillModel, batch: WindowBatch
+    model: SkillModel, batch: WindowBatch, kl: str = "sampled"
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """Eq. 15 with z ~ q_phi reparameterized.
+    """Eq. 15 with z ~ q_phi reparameterized; `kl` (`train.e_kl`): the KL to the prior at the
+    drawn z (`sampled`, as the paper's code) or in closed form (`closed_form`, as `vi_loss`).
 
     Minimizing it over phi alone minimizes KL(q_phi || p(z|s,a)), the causal posterior of
     eq. 2; no TAWM term, so q cannot encode where the window ends beyond what the actions say.
     """
     q = model.posterior_dist(batch.states[:, :-1], batch.actions)
-    loss = e_objective(model, batch, q, q.rsample())
+    loss = E_OBJECTIVES[kl](model, batch, q, q.rsample())
     return loss, {"e_loss": loss.detach()}
 
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 
 import torch
 from torch import nn
@@ -141,8 +142,9 @@ def apply_halves(
 
 
 class EMUpdater:
-    """The paper's incremental EM (§2.1, C.5): per batch one Adam step on phi (eq. 15), then
-    one Adam step on theta, psi, omega (eq. 16)."""
+    """The paper's incremental EM (§2.1, C.5): per batch one Adam step on phi (eq. 15, its KL to
+    the prior `e_kl`: sampled or closed_form, `losses.e_step_loss`), then one Adam step on
+    theta, psi, omega (eq. 16)."""
 
     def __init__(
         self,
@@ -153,6 +155,7 @@ class EMUpdater:
         reduce_grads: GradReducer = no_reduce,
         compile: bool = False,
         dtype: str = "float32",
+        e_kl: str = "sampled",
     ):
         self.model = model
         e_params = list(model.posterior.parameters())
@@ -163,8 +166,8 @@ class EMUpdater:
         }
         # The E-step then the M-step, in the order `step` runs them.
         self.halves = [
-            HalfStep(prepared(e_step_loss, compile, dtype), e_params, self.optimizers["e"],
-                     "e_grad_norm"),
+            HalfStep(prepared(partial(e_step_loss, kl=e_kl), compile, dtype), e_params,
+                     self.optimizers["e"], "e_grad_norm"),
             HalfStep(prepared(m_step_loss, compile, dtype), m_params, self.optimizers["m"],
                      "m_grad_norm"),
         ]  # fmt: skip
@@ -220,9 +223,10 @@ def make_updater(
     reduce_grads: GradReducer = no_reduce,
     compile: bool = False,
     dtype: str = "float32",
+    e_kl: str = "sampled",
 ) -> EMUpdater | VIUpdater:
-    """`em` (the paper's algorithm) or `vi` (the naive ablation; uses `lr_m`), multiplying in
-    `dtype` (float32, or bfloat16 under autocast)."""
+    """`em` (the paper's algorithm; its E-step's KL `e_kl`) or `vi` (the naive ablation; uses
+    `lr_m`), multiplying in `dtype` (float32, or bfloat16 under autocast)."""
     if method == "em":
-        return EMUpdater(model, lr_e, lr_m, grad_clip, reduce_grads, compile, dtype)
+        return EMUpdater(model, lr_e, lr_m, grad_clip, reduce_grads, compile, dtype, e_kl)
     return VIUpdater(model, lr_m, grad_clip, reduce_grads, compile, dtype)
