@@ -30,7 +30,8 @@ else
   deploy precision-main-bfloat16 -S deploy.planner.dtype=bfloat16 & wait
 fi
 
-uv run python scripts/precision_report.py \
+uv run python scripts/runs_report.py --out results/precision-cpu \
+  --title "bfloat16 against float32: training and planning on the CPU (issue 16)" \
   --machine "$(lscpu | sed -n 's/^Model name: *//p' | head -1) ($(grep -qw avx512_bf16 /proc/cpuinfo && echo with || echo without) AVX512-BF16), $(nproc) cores, torch $(uv run python -c 'import torch; print(torch.__version__)'), one torch thread per job; report written $(date -u +%F)" \
   --command "bash scripts/precision_cpu.sh   # two jobs at a time; each run's log: data/runs/precision-*.log" \
   --train "float32, seed 0 (the main job's model: metrics/train.json, dvc repro)=metrics/train.json" \

@@ -1,4 +1,4 @@
-"""scripts/precision_report.py: train metrics and deploy episodes -> the precision comparison,
+"""scripts/runs_report.py: train metrics and deploy episodes -> a report that compares deploys
 episode by episode, and one-line errors for runs that cannot be compared."""
 
 import json
@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-SCRIPT = ROOT / "scripts/precision_report.py"
+SCRIPT = ROOT / "scripts/runs_report.py"
 
 
 def _deploy(root: Path, outcomes: dict[str, list[bool]], goal_shift: float = 0.0) -> Path:
@@ -49,6 +49,7 @@ def test_the_report_compares_deploys_episode_by_episode(tmp_path):
         "--train", f"bf16={_train(tmp_path / 't16.json', 1.443)}",
         "--deploy", f"A={a}", "--deploy", f"B={b}", "--pair", "A|B",
         "--command", "uv run oposm deploy", "--machine", "test CPU", "--out", str(out),
+        "--title", "Precision test", "--intro", "What this compares.",
     )  # fmt: skip
     assert result.returncode == 0, result.stderr
     report = json.loads(out.with_suffix(".json").read_text())
@@ -64,15 +65,18 @@ def test_the_report_compares_deploys_episode_by_episode(tmp_path):
     assert "| f32 | 4750 | 1.578 |" in text and "| bf16 | 4750 | 1.443 |" in text
     assert "| A | B | corners | 8 vs 6 of 10 | 3 | 1 | 0.62 | +20.0 [" in text
     assert "test CPU" in text and "`uv run oposm deploy`" in text
+    assert text.startswith("# Precision test\n") and "(numbers: `precision.json`)" in text
+    assert "What this compares." in text
 
 
 def test_deploys_of_different_episodes_or_a_missing_run_are_one_line_errors(tmp_path):
     a = _deploy(tmp_path / "a", {"corners": [True, False]})
     other = _deploy(tmp_path / "other", {"corners": [True, False]}, goal_shift=0.5)
     result = _script("--deploy", f"A={a}", "--deploy", f"B={other}", "--pair", "A|B",
-                     "--out", str(tmp_path / "x"))  # fmt: skip
+                     "--out", str(tmp_path / "x"), "--title", "t")  # fmt: skip
     assert result.returncode != 0 and "different episodes" in result.stderr
     assert len(result.stderr.strip().splitlines()) == 1 and "Traceback" not in result.stderr
-    missing = _script("--deploy", f"A={tmp_path / 'nothing'}", "--out", str(tmp_path / "x"))
+    missing = _script("--deploy", f"A={tmp_path / 'nothing'}", "--out", str(tmp_path / "x"),
+                      "--title", "t")
     assert missing.returncode != 0 and "episodes.json does not exist" in missing.stderr
     assert not (tmp_path / "x.md").exists()

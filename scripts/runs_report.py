@@ -1,17 +1,19 @@
-"""results/precision-cpu.md + .json: does bfloat16 (`train.dtype`, `deploy.planner.dtype`) give
-float32's results? (issue 16: "training >= 1.5x today's steps/s at equal results").
+"""A results report of training and deploy runs: `results/<name>.md` + `.json`. It is used for
+`results/precision-cpu` (bfloat16 against float32, issue 16; `scripts/precision_cpu.sh`) and
+`results/stability-cpu` (EM across seeds; `scripts/stability_cpu.sh`).
 
 Each `--train LABEL=FILE` is an `oposm train` run's `metrics/train.json`; each
 `--deploy LABEL=RUN_DIR` an `oposm deploy` run (its `reports/deploy/episodes.json`); each
 `--pair "A|B"` compares two deploys episode by episode (they must hold the same episodes: the
 same seeds and goals). `--command` lists the commands that produced them, in order.
 
-    uv run python scripts/precision_report.py \\
+    uv run python scripts/runs_report.py --title "bfloat16 against float32" \\
         --train "float32, seed 0=metrics/train.json" \\
         --train "bfloat16, seed 0=data/runs/s9-train-bf16-s0/metrics/train.json" \\
         --deploy "float32 model=data/runs/s9-deploy-main-float32" \\
         --deploy "bfloat16 model=data/runs/s9-train-bf16-s0" \\
-        --pair "float32 model|bfloat16 model" --command "uv run oposm train ..."
+        --pair "float32 model|bfloat16 model" --command "uv run oposm train ..." \\
+        --out results/precision-cpu
 """
 
 from __future__ import annotations
@@ -98,11 +100,12 @@ def paired(a: dict[tuple[str, int], dict], b: dict[tuple[str, int], dict]) -> di
 
 def markdown(report: dict) -> str:
     lines = [
-        "# bfloat16 against float32: training and planning on the CPU (issue 16)",
+        f"# {report['title']}",
         "",
-        "Written by `scripts/precision_report.py` (numbers: `precision-cpu.json`). "
+        f"Written by `scripts/runs_report.py` (numbers: `{report['name']}.json`). "
         f"Machine: {report['machine']}.",
         "",
+        *[f"{p}\n" for p in report["intro"]],
         "Commands, in order:",
         "",
         *[f"- `{c}`" for c in report["commands"]],
@@ -175,10 +178,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--deploy", action="append", default=[], help="LABEL=deploy run dir")
     parser.add_argument("--pair", action="append", default=[], help="'LABEL A|LABEL B'")
     parser.add_argument("--command", action="append", default=[])
+    parser.add_argument("--title", required=True, help="the report's heading")
+    parser.add_argument("--intro", action="append", default=[], help="a paragraph at the top")
     parser.add_argument("--note", action="append", default=[], help="a paragraph at the end")
     parser.add_argument("--machine", default=f"{platform.processor() or platform.machine()}, "
                         f"{os.cpu_count()} cores")  # fmt: skip
-    parser.add_argument("--out", type=Path, default=ROOT / "results" / "precision-cpu")
+    parser.add_argument("--out", type=Path, required=True,
+                        help="results/<name> (writes <name>.md and <name>.json)")
     args = parser.parse_args(argv)
     try:
         train = {}
@@ -196,6 +202,9 @@ def main(argv: list[str] | None = None) -> None:
             pairs.append({"first": first, "second": second,
                           "tasks": paired(loaded[first], loaded[second])})  # fmt: skip
         report = {
+            "title": args.title,
+            "name": args.out.name,
+            "intro": args.intro,
             "machine": args.machine,
             "commands": args.command,
             "train": train,
