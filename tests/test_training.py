@@ -137,6 +137,20 @@ def _best_of(logged, criterion: str = "st_nll") -> tuple[int, float]:
     return step, metrics[f"val/{criterion}"]
 
 
+@pytest.mark.parametrize("dtype", ["float32", "bfloat16"])
+def test_validating_more_often_leaves_the_training_unchanged(segments, dtype):
+    """Validation reads the model and draws nothing from the training's random streams, so a
+    run that validates every 5 steps ends with the same weights as one that never does."""
+    weights = []
+    for eval_every in (5, 40):
+        model = _model(segments)
+        torch.manual_seed(1)  # the training's draws
+        _fit(segments, model, EMUpdater(model, 3e-3, 3e-3, dtype=dtype), 40, eval_every=eval_every)
+        weights.append(model.state_dict())
+    for name, value in weights[0].items():
+        assert torch.equal(value, weights[1][name]), name
+
+
 def test_em_learns_a_world_model_far_better_than_no_model(segments):
     model = _model(segments)
     _, progress, logged = _fit(
