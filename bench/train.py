@@ -15,12 +15,13 @@ from torch.utils.flop_counter import FlopCounterMode
 from bench.roofline import roofline
 from pipeline.config import Params
 from pipeline.devices import auto_threads, resolve_device, torch_threads
-from pipeline.model import SkillModel, SkillModelConfig
+from pipeline.model import SkillModel
 from pipeline.paths import Paths
 from pipeline.segments import load_segments
 from pipeline.training.cuda_graphs import CudaGraphUpdater
 from pipeline.training.data import WindowSampler
-from pipeline.training.updaters import make_updater
+from pipeline.training.updaters import updater_for
+from stages.train import model_config
 
 log = logging.getLogger(__name__)
 
@@ -44,25 +45,8 @@ def bench_train(params: Params, paths: Paths, steps: int, warmup: int = 5) -> di
         )  # fmt: skip
         out: dict[str, float] = {"load_1min_before": os.getloadavg()[0]}
         torch.manual_seed(cfg.seed)
-        config = SkillModelConfig(
-            segments.info.state_dim,
-            segments.info.action_dim,
-            cfg.z_dim,
-            cfg.hidden,
-            cfg.tawm_shared_std,
-            cfg.min_std,
-        )
-        model = SkillModel(config).to(device)
-        updater = make_updater(
-            cfg.method,
-            model,
-            cfg.lr_e,
-            cfg.lr_m,
-            cfg.grad_clip,
-            compile=cfg.compile,
-            dtype=cfg.dtype,
-            e_kl=cfg.e_kl,
-        )
+        model = SkillModel(model_config(cfg, segments)).to(device)
+        updater = updater_for(cfg, model)
         sampler = WindowSampler(segments, "train", device, cfg.seed)
         with FlopCounterMode(display=False) as counter:  # eager: a graph replay is not seen
             updater.step(sampler.sample(cfg.batch_size))

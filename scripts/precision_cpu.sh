@@ -32,8 +32,7 @@ fi
 
 uv run python scripts/runs_report.py --out results/precision-cpu \
   --title "bfloat16 against float32: training and planning on the CPU (issue 16)" \
-  --machine "$(lscpu | sed -n 's/^Model name: *//p' | head -1) ($(grep -qw avx512_bf16 /proc/cpuinfo && echo with || echo without) AVX512-BF16), $(nproc) cores, torch $(uv run python -c 'import torch; print(torch.__version__)'), one torch thread per job; report written $(date -u +%F)" \
-  --command "bash scripts/precision_cpu.sh   # two jobs at a time; each run's log: data/runs/precision-*.log" \
+  --command "bash scripts/precision_cpu.sh   # two jobs at a time, one torch thread each; each run's log: data/runs/precision-*.log" \
   --train "float32, seed 0 (the main job's model: metrics/train.json, dvc repro)=metrics/train.json" \
   --train "bfloat16, seed 0=$runs/precision-bf16-s0/metrics/train.json" \
   --train "float32, seed 1=$runs/precision-fp32-s1/metrics/train.json" \

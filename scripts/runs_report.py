@@ -22,8 +22,10 @@ import argparse
 import os
 import platform
 import sys
+from datetime import date
 from pathlib import Path
 
+import torch
 from scipy.stats import binomtest
 
 from pipeline.errors import UserError
@@ -96,6 +98,18 @@ def paired(a: dict[tuple[str, int], dict], b: dict[tuple[str, int], dict]) -> di
                      "difference": (wins_a - wins_b) / len(keys),
                      "difference_interval": [low, high]}  # fmt: skip
     return out
+
+
+def this_machine() -> str:
+    """The CPU model (and whether it multiplies bfloat16 natively), cores, torch, today's date."""
+    cpuinfo = Path("/proc/cpuinfo")
+    text = cpuinfo.read_text() if cpuinfo.exists() else ""
+    names = [line.split(":", 1)[1].strip() for line in text.splitlines()
+             if line.startswith("model name")]  # fmt: skip
+    cpu = names[0] if names else platform.processor() or platform.machine()
+    bf16 = " (with AVX512-BF16)" if " avx512_bf16" in text else ""
+    return (f"{cpu}{bf16}, {os.cpu_count()} cores, torch {torch.__version__}; report written "
+            f"{date.today().isoformat()}")  # fmt: skip
 
 
 def markdown(report: dict) -> str:
@@ -181,10 +195,15 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--title", required=True, help="the report's heading")
     parser.add_argument("--intro", action="append", default=[], help="a paragraph at the top")
     parser.add_argument("--note", action="append", default=[], help="a paragraph at the end")
-    parser.add_argument("--machine", default=f"{platform.processor() or platform.machine()}, "
-                        f"{os.cpu_count()} cores")  # fmt: skip
-    parser.add_argument("--out", type=Path, required=True,
-                        help="results/<name> (writes <name>.md and <name>.json)")
+    parser.add_argument(
+        "--machine",
+        default=None,
+        help="where the runs ran (default: this "
+        "machine's CPU, its AVX512-BF16 flag, cores and torch; today's date)",
+    )
+    parser.add_argument(
+        "--out", type=Path, required=True, help="results/<name> (writes <name>.md and <name>.json)"
+    )
     args = parser.parse_args(argv)
     try:
         train = {}
@@ -205,7 +224,7 @@ def main(argv: list[str] | None = None) -> None:
             "title": args.title,
             "name": args.out.name,
             "intro": args.intro,
-            "machine": args.machine,
+            "machine": args.machine or this_machine(),
             "commands": args.command,
             "train": train,
             "deploy": {label: success_rows(e) for label, e in loaded.items()},

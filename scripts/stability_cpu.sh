@@ -31,8 +31,7 @@ for kl in sampled closed_form; do
 done
 uv run python scripts/runs_report.py --out results/stability-cpu \
   --title "EM across seeds: the E-step's KL sampled or in closed form (main job's params, bfloat16)" \
-  --machine "$(lscpu | sed -n 's/^Model name: *//p' | head -1), $(nproc) cores, torch $(uv run python -c 'import torch; print(torch.__version__)'), one torch thread per job; report written $(date -u +%F)" \
-  --command "bash scripts/stability_cpu.sh   # two jobs at a time; each run's log: data/runs/stability-*.log" \
+  --command "bash scripts/stability_cpu.sh   # two jobs at a time, one torch thread each; each run's log: data/runs/stability-*.log" \
   --intro "Each run is \`oposm train\` with the main job's params (lr 2.5e-4, 5000 steps, no gradient clipping) in bfloat16 and one seed. A run that collapses (its validation NLL jumps and does not come back, README: The paper's experiments) publishes an early checkpoint with a validation s_T NLL (prior skills) above 3; a stable one publishes a late step near 1.4-1.9." \
   --note "Read (the run committed here): with the sampled KL seeds 0 and 4 train stably (2 of 5), with the closed form seeds 0, 1 and 4 (3 of 5). Five seeds cannot tell these apart (Fisher's exact test, p = 1.0): the closed form is not the fix. The sampled rows are the same command as \`scripts/precision_cpu.sh\`'s bfloat16 runs." \
   "${rows[@]}" "$@"

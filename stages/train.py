@@ -28,7 +28,7 @@ from pipeline.training.cuda_graphs import CudaGraphUpdater
 from pipeline.training.data import WindowSampler
 from pipeline.training.loop import SELECTION_CRITERIA, Budget, Callbacks, Trainer
 from pipeline.training.state import Progress, load_state, read_progress, save_state
-from pipeline.training.updaters import make_updater, no_reduce
+from pipeline.training.updaters import no_reduce, updater_for
 from stages.report import write_headline
 
 log = logging.getLogger(__name__)
@@ -135,17 +135,7 @@ def _train(
     stats = segments.stats
     model.set_normalization(stats.state_mean, stats.state_std, stats.action_mean, stats.action_std)
     model.to(accelerator.device)
-    updater = make_updater(
-        cfg.method,
-        model,
-        cfg.lr_e,
-        cfg.lr_m,
-        cfg.grad_clip,
-        _grad_reducer(accelerator),
-        cfg.compile,
-        cfg.dtype,
-        cfg.e_kl,
-    )
+    updater = updater_for(cfg, model, _grad_reducer(accelerator))
     if cfg.cuda_graph and accelerator.device.type == "cuda":
         updater = CudaGraphUpdater(updater)
     elif cfg.cuda_graph:

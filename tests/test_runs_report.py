@@ -2,6 +2,7 @@
 episode by episode, and one-line errors for runs that cannot be compared."""
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -76,7 +77,11 @@ def test_deploys_of_different_episodes_or_a_missing_run_are_one_line_errors(tmp_
                      "--out", str(tmp_path / "x"), "--title", "t")  # fmt: skip
     assert result.returncode != 0 and "different episodes" in result.stderr
     assert len(result.stderr.strip().splitlines()) == 1 and "Traceback" not in result.stderr
-    missing = _script("--deploy", f"A={tmp_path / 'nothing'}", "--out", str(tmp_path / "x"),
-                      "--title", "t")
+    default = _script("--deploy", f"A={a}", "--out", str(tmp_path / "d"), "--title", "t")
+    assert default.returncode == 0, default.stderr  # the machine described by default
+    assert f"{os.cpu_count()} cores, torch " in (tmp_path / "d.md").read_text()
+    missing = _script(
+        "--deploy", f"A={tmp_path / 'nothing'}", "--out", str(tmp_path / "x"), "--title", "t"
+    )
     assert missing.returncode != 0 and "episodes.json does not exist" in missing.stderr
     assert not (tmp_path / "x.md").exists()

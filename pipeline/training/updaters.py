@@ -23,6 +23,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
+from typing import TYPE_CHECKING
 
 import torch
 from torch import nn
@@ -30,6 +31,9 @@ from torch import nn
 from pipeline.model.skill_model import SkillModel
 from pipeline.training.data import WindowBatch
 from pipeline.training.losses import e_step_loss, m_step_loss, vi_loss
+
+if TYPE_CHECKING:
+    from pipeline.config import TrainParams
 
 GradReducer = Callable[[list[nn.Parameter]], None]
 Loss = Callable[[SkillModel, WindowBatch], tuple[torch.Tensor, dict[str, torch.Tensor]]]
@@ -230,3 +234,14 @@ def make_updater(
     if method == "em":
         return EMUpdater(model, lr_e, lr_m, grad_clip, reduce_grads, compile, dtype, e_kl)
     return VIUpdater(model, lr_m, grad_clip, reduce_grads, compile, dtype)
+
+
+def updater_for(
+    cfg: TrainParams, model: SkillModel, reduce_grads: GradReducer = no_reduce
+) -> EMUpdater | VIUpdater:
+    """`make_updater` with every setting from the train params (what `oposm train` and
+    `oposm bench train` run)."""
+    return make_updater(
+        cfg.method, model, cfg.lr_e, cfg.lr_m, cfg.grad_clip, reduce_grads, cfg.compile,
+        cfg.dtype, cfg.e_kl,
+    )  # fmt: skip
