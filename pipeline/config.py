@@ -207,11 +207,34 @@ class TrainParams(_Section):
     )
     min_std: float = Field(1e-4, gt=0, description="Floor added to every predicted std.")
     batch_size: int = Field(100, ge=1, description="Windows per update step (paper: 100).")
+    action_likelihood: Literal["gaussian", "censored"] = Field(
+        "gaussian",
+        description="The policy's likelihood of an action. censored: actions at the data's "
+        "bounds (each dim's min and max, where clipped actions pile up) are scored as the "
+        "probability beyond the bound, a Gaussian density inside; gaussian: the density "
+        "everywhere (the paper's), which rewards a std shrinking without limit on clipped "
+        "actions (results/em-trace-*.md).",
+    )
+    policy_trunk: Literal["relu", "layernorm_silu"] = Field(
+        "relu",
+        description="The policy's two hidden layers: relu (appendix C) or layernorm_silu "
+        "(LayerNorm + SiLU, as DreamerV3 and TD-MPC2). Prior and TAWM stay appendix C's.",
+    )
     e_kl: Literal["sampled", "closed_form"] = Field(
         "sampled",
         description="The E-step's KL(q || prior). sampled: log q - log p at the drawn skill (eq. "
         "15 as the paper's code computes it); closed_form: the two Gaussians' KL, as vi "
         "computes it (the same objective with less noise; em only).",
+    )
+    e_prior: Literal["ema", "current"] = Field(
+        "ema",
+        description="The prior the E-step holds the posterior to. ema: a copy averaged over "
+        "the last ~1/prior_ema M-steps, so posterior and prior cannot drift off together "
+        "(results/stability-cpu.md); current: the prior as the last M-step left it (the "
+        "paper's, which collapses on some seeds). em only.",
+    )
+    prior_ema: float = Field(
+        0.01, gt=0, le=1, description="Per-step rate of the E-step's prior average (e_prior: ema)."
     )
     lr_e: float = Field(2.5e-4, gt=0, description="Adam learning rate of the E-step (paper: 5e-5).")
     lr_m: float = Field(
@@ -232,6 +255,15 @@ class TrainParams(_Section):
         "under the posterior skill; st_nll_prior: s_T NLL with the skill drawn from the prior, "
         "as the planner draws it. The best of each is also kept in models/<name>/by/<metric>/.",
     )
+    divergence_margin: float | None = Field(
+        1.0,
+        gt=0,
+        description="A run counts as diverged when its validation `select` metric stays more "
+        "than this many nats above its best for `divergence_evals` validations in a row: logged "
+        "as a warning and recorded in metrics/train.json (diverged, diverged_step); null: no "
+        "check.",
+    )
+    divergence_evals: int = Field(3, ge=1, description="Validations in a row (see above).")
     checkpoint_every: int = Field(250, ge=1, description="Steps between resume-state saves.")
     seed: int = Field(0, description="Seed of initialization, sampling and noise.")
     threads: int | Literal["auto"] | None = Field(

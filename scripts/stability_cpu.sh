@@ -1,37 +1,55 @@
 #!/usr/bin/env bash
-# results/stability-cpu.{md,json}: EM with the main job's params across seeds 0-4, its E-step's
-# KL to the prior sampled (`train.e_kl: sampled`, the default, as the paper's code) and in closed
-# form (`closed_form`, as VI computes it). In bfloat16 (`train.dtype`) to halve the time; the
-# precision report shows float32 failing on the same seeds. About 30 min on 2 cores (two jobs at a
-# time, one torch thread each). Needs the main job's segments (`uv run dvc repro`). `--report`
-# only rewrites the report from the runs already there.
+# results/stability-cpu.{md,json}: EM across seeds, each run trained (`oposm train`, the main
+# job's params in bfloat16, one torch thread) then deployed on the main job's tasks, 100 random
+# goals and 100 corner-to-corner episodes (`oposm deploy`). Recipes (RECIPES below): `ema`
+# (train.e_prior: ema, the default) on seeds 0-9, then `paper` (train.e_prior: current, the
+# paper's and the previous default) on seeds 0-4, then two probes on the paper's E-step, seeds 1
+# and 2: `censored` (train.action_likelihood) and `layernorm` (train.policy_trunk:
+# layernorm_silu). Two jobs at a time; 6-11 min of training and 1-2 of deploying per run on an
+# idle 2-core AVX512-BF16 CPU. A run already finished is skipped, and a killed one resumes where
+# it stopped, so the same command continues a sweep.
+# Needs the main job's segments (`uv run dvc repro`). `--report` only rewrites the report.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 runs=data/runs
-seeds=(0 1 2 3 4)
+declare -A RECIPES=(
+  [ema]="-S train.e_prior=ema"
+  [paper]="-S train.e_prior=current"
+  [censored]="-S train.e_prior=current -S train.action_likelihood=censored"
+  [layernorm]="-S train.e_prior=current -S train.policy_trunk=layernorm_silu"
+)
+jobs=()
+for seed in 0 1 2 3 4 5 6 7 8 9; do jobs+=("ema $seed"); done
+for seed in 0 1 2 3 4; do jobs+=("paper $seed"); done
+for recipe in censored layernorm; do jobs+=("$recipe 1" "$recipe 2"); done
+
+run_one() {  # recipe seed
+  local run="stability-$1-s$2" overrides
+  read -ra overrides <<< "${RECIPES[$1]}"
+  local common=(-S train.dtype=bfloat16 -S train.seed="$2" -S train.threads=1 "${overrides[@]}")
+  if [[ ! -f "$runs/$run/metrics/train.json" ]]; then
+    uv run oposm train --run "$run" "${common[@]}" > "$runs/$run.log" 2>&1
+  fi
+  if [[ ! -f "$runs/$run/metrics/deploy.json" ]]; then
+    uv run oposm deploy --run "$run" "${common[@]}" -S deploy.record_episodes=0 \
+      > "$runs/$run-deploy.log" 2>&1
+  fi
+}
 
 if [[ "${1:-}" == "--report" ]]; then
   shift
 else
-  train() {  # e_kl seed
-    uv run oposm train --run "stability-$1-s$2" -S train.dtype=bfloat16 -S train.e_kl="$1" \
-      -S train.seed="$2" -S train.threads=1 > "$runs/stability-$1-s$2.log" 2>&1
-  }
   mkdir -p "$runs"
-  for seed in "${seeds[@]}"; do
-    train sampled "$seed" & train closed_form "$seed" & wait
+  for ((i = 0; i < ${#jobs[@]}; i += 2)); do
+    run_one ${jobs[i]} &
+    if ((i + 1 < ${#jobs[@]})); then run_one ${jobs[i + 1]} & fi
+    wait
   done
 fi
 
-rows=()
-for kl in sampled closed_form; do
-  for seed in "${seeds[@]}"; do
-    rows+=(--train "e_kl $kl, seed $seed=$runs/stability-$kl-s$seed/metrics/train.json")
-  done
+args=()
+for job in "${jobs[@]}"; do
+  read -r recipe seed <<< "$job"
+  args+=(--run "$recipe $seed $runs/stability-$recipe-s$seed")
 done
-uv run python scripts/runs_report.py --out results/stability-cpu \
-  --title "EM across seeds: the E-step's KL sampled or in closed form (main job's params, bfloat16)" \
-  --command "bash scripts/stability_cpu.sh   # two jobs at a time, one torch thread each; each run's log: data/runs/stability-*.log" \
-  --intro "Each run is \`oposm train\` with the main job's params (lr 2.5e-4, 5000 steps, no gradient clipping) in bfloat16 and one seed. A run that collapses (its validation NLL jumps and does not come back, README: The paper's experiments) publishes an early checkpoint with a validation s_T NLL (prior skills) above 3; a stable one publishes a late step near 1.4-1.9." \
-  --note "Read (the run committed here): with the sampled KL seeds 0 and 4 train stably (2 of 5), with the closed form seeds 0, 1 and 4 (3 of 5). Five seeds cannot tell these apart (Fisher's exact test, p = 1.0): the closed form is not the fix. The sampled rows are the same command as \`scripts/precision_cpu.sh\`'s bfloat16 runs." \
-  "${rows[@]}" "$@"
+uv run python scripts/stability_report.py --out results/stability-cpu "${args[@]}" "$@"

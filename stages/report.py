@@ -34,7 +34,8 @@ def _segment(r: Report) -> Report:
 
 def _train(r: Report) -> Report:
     val = r.get("val", {})
-    picked = ["best_val_st_nll", "best_val_st_nll_prior", "best_step", "steps", "wall_s"]
+    picked = ["best_val_st_nll", "best_val_st_nll_prior", "best_step", "steps", "diverged"]
+    picked += ["diverged_step", "wall_s"]
     return _pick(r, [*picked, "steps_per_s"]) | {
         f"val_{k}": _round(val[k]) for k in ("st_nll", "st_error", "action_nll") if k in val
     }

@@ -21,7 +21,6 @@ import csv
 import io
 import os
 import platform
-import subprocess
 from pathlib import Path
 from typing import Any
 
@@ -30,7 +29,7 @@ import yaml
 from pipeline.errors import UserError
 from pipeline.evaluation import paper
 from pipeline.io import atomic_path, write_json
-from stages.results_common import Report, cell, pct, rate, read, versus
+from stages.results_common import Report, cell, code_version, pct, rate, read, versus
 from stages.results_em_vi import em_vi, em_vi_tables, selection, selection_tables
 from stages.results_em_vi import plot_rows as em_vi_plot_rows
 
@@ -138,28 +137,6 @@ def _mass_claims(mass: dict[str, Any]) -> list[dict[str, Any]]:
     return claims
 
 
-_CODE = ("*.py", "pyproject.toml", "uv.lock")  # what DVC runs do not rewrite (locks, metrics)
-
-
-def _code_version(repo: Path) -> str | None:
-    """The git commit the results were assembled at (`+dirty` with uncommitted code changes)."""
-    try:
-        head = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], cwd=repo, capture_output=True, text=True
-        )
-        dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no", "--", *_CODE],
-            cwd=repo,
-            capture_output=True,
-            text=True,
-        )
-    except OSError:
-        return None
-    if head.returncode != 0:
-        return None
-    return head.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
-
-
 def collect(experiments: Path, repo: Path) -> dict[str, Any]:
     """The numbers and verdicts of every experiment whose reports exist (`deploy.roots` and
     `mass.root` of `experiments` are relative to `repo`)."""
@@ -205,7 +182,7 @@ def collect(experiments: Path, repo: Path) -> dict[str, Any]:
             f"model selection: {selected} of its {runs_planned // 2} deploys have finished"
         )
     results["assembled_on"] = f"{platform.platform()}, {os.cpu_count()} CPUs"
-    results["code"] = _code_version(repo)
+    results["code"] = code_version(repo)
     return results
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import subprocess
 from pathlib import Path
 from typing import Any
 
@@ -50,3 +51,25 @@ def separated(a: list[float], b: list[float]) -> str:
     if min(a) > max(b):
         return "holds"
     return "does not hold" if max(a) < min(b) else "inconclusive"
+
+
+_CODE = ("*.py", "pyproject.toml", "uv.lock")  # what DVC runs do not rewrite (locks, metrics)
+
+
+def code_version(repo: Path) -> str | None:
+    """The git commit the results were assembled at (`+dirty` with uncommitted code changes)."""
+    try:
+        head = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=repo, capture_output=True, text=True
+        )
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no", "--", *_CODE],
+            cwd=repo,
+            capture_output=True,
+            text=True,
+        )
+    except OSError:
+        return None
+    if head.returncode != 0:
+        return None
+    return head.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")

@@ -26,7 +26,13 @@ from pipeline.paths import Paths
 from pipeline.segments import Segments, load_segments
 from pipeline.training.cuda_graphs import CudaGraphUpdater
 from pipeline.training.data import WindowSampler
-from pipeline.training.loop import SELECTION_CRITERIA, Budget, Callbacks, Trainer
+from pipeline.training.loop import (
+    SELECTION_CRITERIA,
+    Budget,
+    Callbacks,
+    DivergenceCheck,
+    Trainer,
+)
 from pipeline.training.state import Progress, load_state, read_progress, save_state
 from pipeline.training.updaters import no_reduce, updater_for
 from stages.report import write_headline
@@ -48,10 +54,16 @@ _BUDGET_KEYS = {
     "compile",
     "cuda_graph",
     "select",
+    "divergence_margin",
+    "divergence_evals",
 }
 
 
 def model_config(cfg: TrainParams, segments: Segments) -> SkillModelConfig:
+    bounds = {}
+    if cfg.action_likelihood == "censored":  # the data's own bounds, where clipping piles up
+        actions = segments.actions
+        bounds = {"action_low": actions.min(0).tolist(), "action_high": actions.max(0).tolist()}
     return SkillModelConfig(
         state_dim=segments.info.state_dim,
         action_dim=segments.info.action_dim,
@@ -59,6 +71,8 @@ def model_config(cfg: TrainParams, segments: Segments) -> SkillModelConfig:
         hidden=cfg.hidden,
         tawm_shared_std=cfg.tawm_shared_std,
         min_std=cfg.min_std,
+        policy_layer_norm=cfg.policy_trunk == "layernorm_silu",
+        **bounds,
     )
 
 
@@ -182,7 +196,10 @@ def _train(
 
     def save_resume(p: Progress) -> None:
         if main:
-            save_state(resume_dir, model, updater.optimizers, train.generator, p, fingerprint)
+            save_state(
+                resume_dir, model, updater.optimizers, train.generator, p, fingerprint,
+                updater.extra_state(),
+            )  # fmt: skip
         accelerator.wait_for_everyone()
 
     budget = Budget(
@@ -201,6 +218,7 @@ def _train(
         budget,
         Callbacks(log_metrics, save_best, save_resume, threads.tick),
         progress_bar=progress_bar and main,
+        divergence=DivergenceCheck(cfg.select, cfg.divergence_margin, cfg.divergence_evals),
     )
     progress = trainer.fit(progress)
     run_s = max(progress.elapsed_s, 1e-9)  # over resumed runs, like `steps`
@@ -218,6 +236,8 @@ def _train(
                 for c in SELECTION_CRITERIA
                 if c != cfg.select
             },
+            "diverged": progress.diverged_step is not None,
+            "diverged_step": progress.diverged_step,
             "wall_s": progress.elapsed_s,
             "steps_per_s": progress.step / run_s,
             "windows_per_s": progress.step * cfg.batch_size / run_s,
@@ -226,6 +246,13 @@ def _train(
         }
         live.end()
         _publish(paths, name, cfg.select, best_dir, live_dir, live.summary)
+    if progress.diverged_step is not None:
+        log.warning(
+            "this run diverged at step %d (metrics/train.json: diverged); the published model "
+            "is its best checkpoint, from step %d. Another train.seed may train stably",
+            progress.diverged_step,
+            selected_step,
+        )
     log.info(
         "trained %d steps in %.0f s; best val %s %.3f at step %d -> %s",
         progress.step,
@@ -262,7 +289,9 @@ def _resume(
             cfg.max_steps,
         )
         return None
-    return load_state(resume_dir, model, updater.optimizers, generator, fingerprint)
+    return load_state(
+        resume_dir, model, updater.optimizers, generator, fingerprint, updater.extra_state()
+    )
 
 
 def _publish(

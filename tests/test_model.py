@@ -134,3 +134,67 @@ def test_missing_or_corrupt_checkpoint_is_a_user_error(tmp_path):
     (tmp_path / "model.safetensors").write_bytes(b"\0" * 10)
     with pytest.raises(UserError, match="unreadable"):
         load_model(tmp_path)
+
+
+CENSORED = SkillModelConfig(2, 1, z_dim=2, hidden=3, action_low=(-1.0,), action_high=(1.0,))
+
+
+def _normal_log_sf(x: float, mean: float, std: float) -> float:
+    """log P(X >= x) for X ~ N(mean, std^2), from math.erfc."""
+    return math.log(0.5 * math.erfc((x - mean) / (std * math.sqrt(2))))
+
+
+def test_censored_policy_scores_clipped_actions_as_the_mass_beyond_the_bound():
+    """train.action_likelihood censored: an action at a bound scores log P(beyond it), one
+    inside the Gaussian density; raw bounds are normalized with the action statistics."""
+    model = SkillModel(CENSORED)
+    for module in model.modules():
+        if isinstance(module, nn.Linear):
+            nn.init.zeros_(module.weight)
+            nn.init.zeros_(module.bias)
+    model.policy.head.mean[-1].bias.data.fill_(0.3)
+    model.set_normalization([0.0, 0.0], [1.0, 1.0], [0.5], [2.0])  # bounds: -0.75, 0.25
+    s, z = torch.zeros(3, 2), torch.zeros(3, 2)
+    a_n = model.norm_actions(torch.tensor([[1.0], [-1.0], [0.0]]))
+    got = model.policy_log_prob(s, z, a_n)
+    want = [
+        _normal_log_sf(0.25, 0.3, STD),  # at the upper bound: P(X >= 0.25)
+        _normal_log_sf(0.75, -0.3, STD),  # at the lower: P(X <= -0.75) = P(-X >= 0.75)
+        _normal_log_pdf(-0.25, 0.3, STD),  # inside
+    ]
+    torch.testing.assert_close(got, torch.tensor(want), rtol=1e-5, atol=1e-5)
+
+
+def test_censored_likelihood_of_a_clipped_action_is_bounded_as_the_std_vanishes():
+    """The Gaussian density of a clipped action grows without limit as the std shrinks (what
+    drove EM's collapse); the censored likelihood is at most 0 (probability 1)."""
+    from pipeline.model.skill_model import censored_log_prob
+
+    low, high, x = torch.tensor(-1.0), torch.tensor(1.0), torch.tensor(1.0)
+    for std in (1.0, 1e-2, 1e-4):
+        mean, s = torch.tensor(1.0 - std), torch.tensor(std)
+        density = torch.distributions.Normal(mean, s).log_prob(x)
+        censored = censored_log_prob(mean, s, x, low, high)
+        assert censored <= 0.0
+        assert density > censored  # here the density rewards the small std...
+    assert density > 7.5  # ...without limit: 7.8 nats at std 1e-4
+
+
+def test_censored_config_round_trips_and_clips_actions(tmp_path):
+    model = SkillModel(CENSORED)
+    model.set_normalization([0.0, 0.0], [1.0, 1.0], [0.0], [1.0])
+    save_model(model, tmp_path, {})
+    loaded, meta = load_model(tmp_path, expected=CENSORED)
+    assert loaded.config == CENSORED and meta["model"]["action_high"] == [1.0]
+    assert "action_low" not in dict(loaded.state_dict())  # from the config, not the weights
+    torch.manual_seed(0)
+    acts = loaded.act(torch.zeros(500, 2), torch.zeros(500, 2) + 5.0, sample=True)
+    assert acts.min() >= -1.0 and acts.max() <= 1.0
+    assert SkillModel(CONFIG).clip_actions(torch.tensor([3.0])).item() == 3.0  # no bounds
+
+
+def test_censored_config_checks_its_bounds():
+    with pytest.raises(ValueError, match="both or neither"):
+        SkillModelConfig(2, 1, action_low=(-1.0,))
+    with pytest.raises(ValueError, match="2 values for 1 dims"):
+        SkillModelConfig(2, 1, action_low=(-1.0, -1.0), action_high=(1.0, 1.0))

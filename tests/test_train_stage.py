@@ -1,6 +1,7 @@
 """The train stage's files: scratch resume state, published outputs, old model kept, bad state."""
 
 import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -176,3 +177,23 @@ def test_a_trainer_started_by_dvc_stops_when_dvc_is_killed(paths, tmp_path):
     else:
         os.kill(trainer, signal.SIGKILL)
         pytest.fail("the trainer kept running after DVC was killed")
+
+
+def test_the_headline_says_whether_the_run_diverged(paths):
+    progress = _run(paths, max_steps=40, eval_every=10)
+    headline = json.loads(paths.metrics("train").read_text())
+    assert progress.diverged_step is None
+    assert headline["diverged"] is False and headline["diverged_step"] is None
+
+
+def test_an_ema_prior_run_resumes_bit_identical(paths):
+    """train.e_prior ema: the E-step's averaged prior is part of the resume state."""
+    _run(paths, max_steps=20, e_prior="ema", prior_ema=0.1)
+    straight = _weights(paths)
+    for folder in _scratch(paths):
+        shutil.rmtree(folder)
+    _run(paths, max_steps=10, e_prior="ema", prior_ema=0.1)
+    _run(paths, max_steps=20, e_prior="ema", prior_ema=0.1)  # resumes at step 10
+    resumed = _weights(paths)
+    for name, value in straight.items():
+        assert torch.equal(value, resumed[name]), name

@@ -384,3 +384,37 @@ def test_prior_marginal_nll_is_the_monte_carlo_mixture_likelihood(segments):
     # One draw repeated K times is that draw's NLL: the estimate does not grow with K.
     one = prior_marginal_nll(model, s0, s_t, eps[:1])
     assert torch.allclose(prior_marginal_nll(model, s0, s_t, eps[:1].repeat(4, 1)), one)
+
+
+def test_the_ema_prior_follows_the_prior_at_its_rate_and_holds_the_e_step(segments):
+    """train.e_prior ema: after each step the average moves `rate` of the way to the prior;
+    the E-step's gradient differs from the current prior's (it holds q to the average)."""
+    from pipeline.training.updaters import EMUpdater
+
+    batch = WindowSampler(segments, "train", torch.device("cpu"), 0).sample(32)
+    model = _model(segments, hidden=32, z_dim=4)
+    updater = EMUpdater(model, 1e-3, 1e-3, prior_ema=0.25)
+    before = [p.clone() for p in updater.prior_ema.net.parameters()]
+    updater.step(batch)
+    averaged, current = updater.prior_ema.net.parameters(), model.prior.parameters()
+    for old, avg, cur in zip(before, averaged, current, strict=True):
+        torch.testing.assert_close(avg, old + 0.25 * (cur - old))
+    assert not any(p.requires_grad for p in updater.prior_ema.parameters())
+    assert not any(torch.equal(a, c) for a, c in zip(before, model.prior.parameters(), strict=True))
+
+
+def test_divergence_check_flags_a_run_above_its_best_for_evals_in_a_row(caplog):
+    """A collapsed run's validation jumps by nats and stays up; one excursion that comes back
+    within `evals` validations is not a divergence."""
+    from pipeline.training.loop import DivergenceCheck
+
+    check = DivergenceCheck("st_nll_prior", margin=1.0, evals=3)
+    progress = Progress(best={"st_nll_prior": {"step": 500, "value": 3.3}})
+    flagged = []
+    for step, value in [(750, 9.0), (1000, 5.0), (1250, 3.5), (1500, 7.0), (1750, 4.4),
+                        (2000, 4.5), (2250, 4.0)]:  # fmt: skip
+        progress.step = step
+        flagged.append(check.update(progress, value))
+    assert flagged == [False, False, False, False, False, True, False]
+    assert progress.diverged_step == 2000 and progress.evals_above_best == 0
+    assert not DivergenceCheck(margin=None).update(Progress(), 1e9)

@@ -51,8 +51,23 @@ def _float32_output(net: nn.Sequential, h: torch.Tensor) -> torch.Tensor:
         return net[-1](hidden.float())
 
 
+def trunk(in_dim: int, hidden: int, layer_norm: bool = False) -> nn.Sequential:
+    """Two hidden layers: Linear + ReLU each (appendix C), or with `layer_norm` Linear +
+    LayerNorm + SiLU each (DreamerV3's and TD-MPC2's trunks): the normalization keeps the
+    layer's output on one scale whatever the size of its input."""
+    if not layer_norm:
+        return nn.Sequential(
+            nn.Linear(in_dim, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU()
+        )
+    return nn.Sequential(
+        nn.Linear(in_dim, hidden), nn.LayerNorm(hidden), nn.SiLU(),
+        nn.Linear(hidden, hidden), nn.LayerNorm(hidden), nn.SiLU(),
+    )  # fmt: skip
+
+
 class GaussianMLP(nn.Module):
-    """A 2-layer shared ReLU network followed by a `GaussianHead` (appendix C.2–C.4)."""
+    """A 2-layer shared network (`trunk`: ReLU, appendix C.2–C.4, or LayerNorm + SiLU)
+    followed by a `GaussianHead`."""
 
     def __init__(
         self,
@@ -61,11 +76,10 @@ class GaussianMLP(nn.Module):
         out_dim: int,
         shared_std: bool = False,
         min_std: float = 1e-4,
+        layer_norm: bool = False,
     ):
         super().__init__()
-        self.trunk = nn.Sequential(
-            nn.Linear(in_dim, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU()
-        )
+        self.trunk = trunk(in_dim, hidden, layer_norm)
         self.head = GaussianHead(hidden, hidden, out_dim, shared_std, min_std)
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

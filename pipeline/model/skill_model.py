@@ -28,6 +28,14 @@ class SkillModelConfig:
         tawm_shared_std: One scalar std shared by all state dims in p_psi (paper, mazes) instead
             of one per dim.
         min_std: Floor added to every softplus std.
+        action_low: Raw lower bound of each action dim where the data's actions are clipped
+            (censored), or None: the policy's likelihood is then a plain Gaussian density (the
+            paper's). With bounds, an action at a bound is scored as the probability mass
+            beyond it (`censored_log_prob`), so a clipped action cannot reward a vanishing std.
+        action_high: Raw upper bounds, likewise (both or neither).
+        policy_layer_norm: The policy's trunk normalizes its hidden layers (LayerNorm + SiLU,
+            `networks.trunk`) instead of the paper's ReLU layers; the prior and TAWM (what the
+            planner runs) keep the paper's.
     """
 
     state_dim: int
@@ -36,9 +44,51 @@ class SkillModelConfig:
     hidden: int = 256
     tawm_shared_std: bool = True
     min_std: float = 1e-4
+    action_low: tuple[float, ...] | None = None
+    action_high: tuple[float, ...] | None = None
+    policy_layer_norm: bool = False
+
+    def __post_init__(self) -> None:
+        bounds = (self.action_low, self.action_high)
+        if (bounds[0] is None) != (bounds[1] is None):
+            raise ValueError("action_low and action_high come together (both or neither)")
+        for name, value in zip(("action_low", "action_high"), bounds, strict=True):
+            if value is not None:
+                value = tuple(float(v) for v in value)
+                if len(value) != self.action_dim:
+                    raise ValueError(f"{name} has {len(value)} values for {self.action_dim} dims")
+                object.__setattr__(self, name, value)
+
+    @property
+    def censored(self) -> bool:
+        """Whether the policy's likelihood is censored at action bounds."""
+        return self.action_low is not None
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+# An action within this many normalized units of a bound counts as clipped to it.
+BOUND_TOLERANCE = 1e-5
+
+
+def censored_log_prob(
+    mean: torch.Tensor, std: torch.Tensor, x: torch.Tensor, low: torch.Tensor, high: torch.Tensor
+) -> torch.Tensor:
+    """Elementwise log-likelihood (not summed) of `x` under N(mean, std^2) censored at
+    `[low, high]`: the density inside, log P(X >= high) at the upper bound, log P(X <= low) at
+    the lower one.
+
+    This is the likelihood of data made as clip(mean + noise): an action clipped to a bound is
+    only known to lie beyond it. A plain density there rewards a std shrinking to zero without
+    limit (the clipped values are a point mass); the censored term is at most 0 (probability 1),
+    reached by a mean beyond the bound at any std.
+    """
+    density = Normal(mean, std, validate_args=False).log_prob(x)
+    upper = torch.special.log_ndtr((mean - high) / std)
+    lower = torch.special.log_ndtr((low - mean) / std)
+    at_high, at_low = x >= high - BOUND_TOLERANCE, x <= low + BOUND_TOLERANCE
+    return torch.where(at_high, upper, torch.where(at_low, lower, density))
 
 
 def diag_normal(mean: torch.Tensor, std: torch.Tensor) -> Independent:
@@ -84,7 +134,9 @@ class SkillModel(nn.Module):
         sd, ad, z, h = config.state_dim, config.action_dim, config.z_dim, config.hidden
         self.posterior = SkillPosterior(config)
         self.prior = GaussianMLP(sd, h, z, min_std=config.min_std)
-        self.policy = GaussianMLP(sd + z, h, ad, min_std=config.min_std)
+        self.policy = GaussianMLP(
+            sd + z, h, ad, min_std=config.min_std, layer_norm=config.policy_layer_norm
+        )
         self.tawm = GaussianMLP(
             sd + z, h, sd, shared_std=config.tawm_shared_std, min_std=config.min_std
         )
@@ -92,6 +144,10 @@ class SkillModel(nn.Module):
         self.register_buffer("state_std", torch.ones(sd))
         self.register_buffer("action_mean", torch.zeros(ad))
         self.register_buffer("action_std", torch.ones(ad))
+        if config.censored:  # raw bounds from the config, not the weights file
+            for name in ("action_low", "action_high"):
+                bound = torch.tensor(getattr(config, name), dtype=torch.float32)
+                self.register_buffer(name, bound, persistent=False)
 
     def generative(self) -> list[nn.Parameter]:
         """Parameters updated by the M-step: theta (policy), psi (TAWM), omega (prior)."""
@@ -123,9 +179,23 @@ class SkillModel(nn.Module):
         """p_omega(z | s_0) from normalized `s0 [..., sd]`."""
         return diag_normal(*self.prior(s0_n))
 
-    def policy_dist(self, s_n: torch.Tensor, z: torch.Tensor) -> Independent:
-        """pi_theta(a | s, z) over normalized actions; `s [..., sd]`, `z [..., z]`."""
-        return diag_normal(*self.policy(torch.cat([s_n, z], dim=-1)))
+    def policy_log_prob(
+        self, s_n: torch.Tensor, z: torch.Tensor, a_n: torch.Tensor
+    ) -> torch.Tensor:
+        """log pi_theta(a | s, z) `[...]` of normalized actions `a_n [..., ad]`, summed over
+        dims: a Gaussian density, or censored at the action bounds (`SkillModelConfig`)."""
+        mean, std = self.policy(torch.cat([s_n, z], dim=-1))
+        if not self.config.censored:
+            return diag_normal(mean, std).log_prob(a_n)
+        low, high = self.norm_actions(self.action_low), self.norm_actions(self.action_high)
+        return censored_log_prob(mean, std, a_n, low, high).sum(-1)
+
+    def clip_actions(self, a: torch.Tensor) -> torch.Tensor:
+        """Raw actions `a` clipped to the action bounds (unchanged without bounds): what the
+        censored policy's samples and mean mean as executed actions."""
+        if not self.config.censored:
+            return a
+        return torch.minimum(torch.maximum(a, self.action_low), self.action_high)
 
     def tawm_dist(self, s0_n: torch.Tensor, z: torch.Tensor) -> Independent:
         """p_psi(s_T | s_0, z) over normalized s_T; `s0 [..., sd]`, `z [..., z]`."""
@@ -148,7 +218,7 @@ class SkillModel(nn.Module):
         """Raw `s [..., sd]`, `z [..., z]` -> raw action `[..., ad]` (mean, or sampled)."""
         mean, std = self.policy(torch.cat([self.norm_states(s), z], dim=-1))
         a = mean + std * torch.randn_like(std) if sample else mean
-        return a * self.action_std + self.action_mean
+        return self.clip_actions(a * self.action_std + self.action_mean)
 
     @torch.no_grad()
     def infer_skill(

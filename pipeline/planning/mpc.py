@@ -115,4 +115,4 @@ class SkillMPC:
             keys = substream(self._action_keys[idx], self._steps[idx])
             mean = mean + std * normal(keys, mean.shape[1:])
             self._steps[idx] += 1
-        return (mean * m.action_std + m.action_mean).double().cpu().numpy()
+        return m.clip_actions(mean * m.action_std + m.action_mean).double().cpu().numpy()

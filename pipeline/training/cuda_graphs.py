@@ -67,6 +67,9 @@ class CudaGraphUpdater:
         self._batch: WindowBatch | None = None
         self._steps = 0
 
+    def extra_state(self) -> dict:
+        return self.inner.extra_state()
+
     def step(self, batch: WindowBatch) -> dict[str, torch.Tensor]:
         """One update; metrics as 0-d device tensors, valid until the next step."""
         self._steps += 1
@@ -86,6 +89,9 @@ class CudaGraphUpdater:
             if not bool(half.finite):  # skipped: nothing changed; the loop stops on it
                 return metrics
             half.apply.replay()
+        if getattr(self.inner, "prior_ema", None) is not None:
+            # updated in place, outside the graphs: the E-step graph reads its weights there
+            self.inner.prior_ema.update()
         return metrics
 
     def _capture(self, batch: WindowBatch) -> None:

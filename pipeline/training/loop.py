@@ -9,6 +9,7 @@ floats were) and reads them back once per validation.
 
 from __future__ import annotations
 
+import logging
 import time
 from collections import defaultdict
 from collections.abc import Callable
@@ -31,6 +32,37 @@ from pipeline.training.updaters import EMUpdater, VIUpdater
 # st_nll_prior: s_T NLL with the skill marginalized over the prior, as a planner draws it.
 SELECTION_CRITERIA = ("st_nll", "st_nll_prior")
 PRIOR_SAMPLES = 64  # Monte Carlo skills per window for st_nll_prior
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class DivergenceCheck:
+    """When a run counts as diverged: its validation `criterion` more than `margin` above its
+    best for `evals` validations in a row (a collapsed EM run jumps by several nats and does not
+    come back; a stable one stays within a few tenths of its best). `margin` None: no check.
+
+    A diverged run is logged as such and recorded (`Progress.diverged_step`); it goes on to its
+    budget, and its best checkpoint (from before the divergence) is what gets published.
+    """
+
+    criterion: str = "st_nll_prior"
+    margin: float | None = 1.0
+    evals: int = 3
+
+    def update(self, progress: Progress, value: float) -> bool:
+        """Count `value` (the newest validation) against the best; True when this validation
+        is the one that finds the run diverged."""
+        if self.margin is None:
+            return False
+        _, best = progress.best_of(self.criterion)
+        progress.evals_above_best = (
+            progress.evals_above_best + 1 if value > best + self.margin else 0
+        )
+        if progress.diverged_step is None and progress.evals_above_best >= self.evals:
+            progress.diverged_step = progress.step
+            return True
+        return False
 
 
 @dataclass
@@ -102,6 +134,7 @@ class Trainer:
         budget: Budget,
         callbacks: Callbacks,
         progress_bar: bool = True,
+        divergence: DivergenceCheck | None = None,
     ):
         self.model = model
         self.updater = updater
@@ -111,6 +144,7 @@ class Trainer:
         self.budget = budget
         self.callbacks = callbacks
         self.progress_bar = progress_bar
+        self.divergence = divergence or DivergenceCheck(margin=None)
 
     def _out_of_time(self, progress: Progress, started: float, resumed_elapsed: float) -> bool:
         progress.elapsed_s = resumed_elapsed + time.monotonic() - started
@@ -124,6 +158,16 @@ class Trainer:
         metrics |= evaluate(self.model, self.val, self.val_idx)
         metrics["time/elapsed_s"] = progress.elapsed_s  # for error-vs-wall-time plots
         self.callbacks.log(progress.step, metrics)
+        check = self.divergence
+        if check.update(progress, metrics[f"val/{check.criterion}"]):
+            step, best = progress.best_of(check.criterion)
+            log.warning(
+                "training diverged: validation %s has been more than %g above its best (%.3f at "
+                "step %d) for %d validations, now %.3f at step %d; the best checkpoint (step %d) "
+                "will be published. Try another train.seed, or see results/stability-cpu.md",
+                check.criterion, check.margin, best, step, check.evals,
+                metrics[f"val/{check.criterion}"], progress.step, step,
+            )  # fmt: skip
         for criterion in SELECTION_CRITERIA:
             value = metrics[f"val/{criterion}"]
             if value < progress.best_of(criterion)[1]:

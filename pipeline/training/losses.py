@@ -9,35 +9,50 @@ from __future__ import annotations
 import math
 
 import torch
+from torch import nn
 from torch.distributions import Independent, kl_divergence
 
-from pipeline.model.skill_model import SkillModel
+from pipeline.model.skill_model import SkillModel, diag_normal
 from pipeline.training.data import WindowBatch
 
 
 def policy_log_prob(model: SkillModel, batch: WindowBatch, z: torch.Tensor) -> torch.Tensor:
-    """log pi_theta(a_0..T-1 | s_0..T-1, z) `[B]`: sum over the T steps."""
+    """log pi_theta(a_0..T-1 | s_0..T-1, z) `[B]`: sum over the T steps (censored at the action
+    bounds when the model has them, `SkillModel.policy_log_prob`)."""
     s = batch.states[:, :-1]
     z_t = z[:, None, :].expand(-1, s.shape[1], -1)
-    return model.policy_dist(s, z_t).log_prob(batch.actions).sum(-1)
+    return model.policy_log_prob(s, z_t, batch.actions).sum(-1)
+
+
+def _prior_dist(model: SkillModel, s0_n: torch.Tensor, prior: nn.Module | None) -> Independent:
+    """p_omega(z | s_0): the model's prior, or the network `prior` in its place (an EMA copy)."""
+    return model.prior_dist(s0_n) if prior is None else diag_normal(*prior(s0_n))
 
 
 def e_objective(
-    model: SkillModel, batch: WindowBatch, q: Independent, z: torch.Tensor
+    model: SkillModel,
+    batch: WindowBatch,
+    q: Independent,
+    z: torch.Tensor,
+    prior: nn.Module | None = None,
 ) -> torch.Tensor:
     """Eq. 15 for given posterior `q` and samples `z [B, z_dim]`:
-    -mean[log pi(a|s,z) + log p_omega(z|s_0) - log q_phi(z|tau)]."""
+    -mean[log pi(a|s,z) + log p_omega(z|s_0) - log q_phi(z|tau)] (`prior`: see `_prior_dist`)."""
     log_pi = policy_log_prob(model, batch, z)
-    log_prior = model.prior_dist(batch.states[:, 0]).log_prob(z)
+    log_prior = _prior_dist(model, batch.states[:, 0], prior).log_prob(z)
     return -(log_pi + log_prior - q.log_prob(z)).mean()
 
 
 def e_objective_closed_form(
-    model: SkillModel, batch: WindowBatch, q: Independent, z: torch.Tensor
+    model: SkillModel,
+    batch: WindowBatch,
+    q: Independent,
+    z: torch.Tensor,
+    prior: nn.Module | None = None,
 ) -> torch.Tensor:
     """Eq. 15 with the KL to the prior in closed form: -mean[log pi(a|s,z) - KL(q || p_omega)].
     Equal to `e_objective` in expectation over z ~ q, with less noise."""
-    kl = kl_divergence(q, model.prior_dist(batch.states[:, 0]))
+    kl = kl_divergence(q, _prior_dist(model, batch.states[:, 0], prior))
     return -(policy_log_prob(model, batch, z) - kl).mean()
 
 
@@ -45,16 +60,17 @@ E_OBJECTIVES = {"sampled": e_objective, "closed_form": e_objective_closed_form}
 
 
 def e_step_loss(
-    model: SkillModel, batch: WindowBatch, kl: str = "sampled"
+    model: SkillModel, batch: WindowBatch, kl: str = "sampled", prior: nn.Module | None = None
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Eq. 15 with z ~ q_phi reparameterized; `kl` (`train.e_kl`): the KL to the prior at the
-    drawn z (`sampled`, as the paper's code) or in closed form (`closed_form`, as `vi_loss`).
+    drawn z (`sampled`, as the paper's code) or in closed form (`closed_form`, as `vi_loss`);
+    `prior`: a network standing in for the model's prior (`train.e_prior: ema`), or None.
 
     Minimizing it over phi alone minimizes KL(q_phi || p(z|s,a)), the causal posterior of
     eq. 2; no TAWM term, so q cannot encode where the window ends beyond what the actions say.
     """
     q = model.posterior_dist(batch.states[:, :-1], batch.actions)
-    loss = E_OBJECTIVES[kl](model, batch, q, q.rsample())
+    loss = E_OBJECTIVES[kl](model, batch, q, q.rsample(), prior)
     return loss, {"e_loss": loss.detach()}
 
 

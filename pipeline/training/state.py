@@ -35,11 +35,16 @@ class Progress:
         elapsed_s: Training wall time over resumed runs.
         best: Per model-selection criterion (a validation metric, `SELECTION_CRITERIA`), the
             step and value of its best validation so far: `{"step": int, "value": float}`.
+        evals_above_best: Consecutive validations, up to the last, whose watched metric was
+            more than the divergence margin above its best (`loop.DivergenceCheck`).
+        diverged_step: The step at which the run was found diverged; None while it is not.
     """
 
     step: int = 0
     elapsed_s: float = 0.0
     best: dict[str, dict[str, float]] = field(default_factory=dict)
+    evals_above_best: int = 0
+    diverged_step: int | None = None
 
     def best_of(self, criterion: str) -> tuple[int, float]:
         """(step, value) of `criterion`'s best validation; (-1, inf) before the first."""
@@ -54,11 +59,14 @@ def save_state(
     generator: torch.Generator,
     progress: Progress,
     fingerprint: str,
+    extra: dict[str, torch.nn.Module] | None = None,
 ) -> None:
-    """Write the resume state of a run (replacing the previous one atomically)."""
+    """Write the resume state of a run (replacing the previous one atomically); `extra`: other
+    modules the run keeps (`EMUpdater.extra_state`), saved beside the optimizers."""
     model_state = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
     optim = {
         "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
+        "extra": {k: m.state_dict() for k, m in (extra or {}).items()},
         "torch_rng": torch.get_rng_state(),
         "sampler_rng": generator.get_state(),
     }
@@ -104,8 +112,10 @@ def load_state(
     optimizers: dict[str, torch.optim.Optimizer],
     generator: torch.Generator,
     fingerprint: str,
+    extra: dict[str, torch.nn.Module] | None = None,
 ) -> Progress | None:
-    """Restore a previous run's state in place; None if there is none or it is for other params."""
+    """Restore a previous run's state in place (and `extra`'s, as `save_state` wrote them);
+    None if there is none or it is for other params."""
     progress = read_progress(directory, fingerprint)
     if progress is None:
         return None
@@ -115,6 +125,8 @@ def load_state(
         optim = torch.load(directory / "optim.pt", weights_only=True, map_location=device)
         for name, optimizer in optimizers.items():
             _load_optimizer(optimizer, optim["optimizers"][name])
+        for name, module in (extra or {}).items():
+            module.load_state_dict(optim["extra"][name])
         torch.set_rng_state(optim["torch_rng"].cpu())
         generator.set_state(optim["sampler_rng"].cpu())
     except (

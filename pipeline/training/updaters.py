@@ -20,6 +20,7 @@ Adam, the heads' output layers and the losses stay float32 (`networks.GaussianHe
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
@@ -145,10 +146,37 @@ def apply_halves(
     return metrics
 
 
+class EMAPrior(nn.Module):
+    """A slowly moving copy of the skill prior for the E-step (`train.e_prior: ema`): after each
+    M-step its weights move `rate` of the way to the prior's (Polyak averaging, as target
+    networks in RL and DreamerV3's slow critic).
+
+    In eq. 15 the prior is what holds the posterior in place; when it is the current prior, it
+    follows the posterior one M-step behind, so the two can drift together without limit. The
+    average moves on a time scale of 1 / rate steps, so the posterior is held to where the
+    prior has been.
+    """
+
+    def __init__(self, prior: nn.Module, rate: float):
+        super().__init__()
+        self.net = copy.deepcopy(prior).requires_grad_(False)
+        self.rate = rate
+        self._source = [prior]  # not a submodule: its weights are the model's
+
+    def forward(self, s0_n: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.net(s0_n)
+
+    @torch.no_grad()
+    def update(self) -> None:
+        for mine, theirs in zip(self.net.parameters(), self._source[0].parameters(), strict=True):
+            mine.lerp_(theirs, self.rate)
+
+
 class EMUpdater:
     """The paper's incremental EM (§2.1, C.5): per batch one Adam step on phi (eq. 15, its KL to
     the prior `e_kl`: sampled or closed_form, `losses.e_step_loss`), then one Adam step on
-    theta, psi, omega (eq. 16)."""
+    theta, psi, omega (eq. 16). With `prior_ema` the E-step's prior is an `EMAPrior` of that
+    rate (the paper: the current prior)."""
 
     def __init__(
         self,
@@ -160,6 +188,7 @@ class EMUpdater:
         compile: bool = False,
         dtype: str = "float32",
         e_kl: str = "sampled",
+        prior_ema: float | None = None,
     ):
         self.model = model
         e_params = list(model.posterior.parameters())
@@ -168,9 +197,11 @@ class EMUpdater:
             "e": torch.optim.Adam(e_params, lr=lr_e),
             "m": torch.optim.Adam(m_params, lr=lr_m),
         }
+        self.prior_ema = None if prior_ema is None else EMAPrior(model.prior, prior_ema)
         # The E-step then the M-step, in the order `step` runs them.
+        e_loss = partial(e_step_loss, kl=e_kl, prior=self.prior_ema)
         self.halves = [
-            HalfStep(prepared(partial(e_step_loss, kl=e_kl), compile, dtype), e_params,
+            HalfStep(prepared(e_loss, compile, dtype), e_params,
                      self.optimizers["e"], "e_grad_norm"),
             HalfStep(prepared(m_step_loss, compile, dtype), m_params, self.optimizers["m"],
                      "m_grad_norm"),
@@ -185,11 +216,23 @@ class EMUpdater:
 
     def m_step(self, batch: WindowBatch) -> tuple[dict[str, torch.Tensor], bool]:
         """One Adam step on policy, TAWM and prior (theta, psi, omega) minimizing eq. 16."""
-        return apply_half(self.halves[1], self.model, batch, self.reduce_grads, self.grad_clip)
+        metrics, finite = apply_half(
+            self.halves[1], self.model, batch, self.reduce_grads, self.grad_clip
+        )
+        if finite and self.prior_ema is not None:
+            self.prior_ema.update()
+        return metrics, finite
 
     def step(self, batch: WindowBatch) -> dict[str, torch.Tensor]:
         """E-step then M-step (not the M-step after a non-finite E-step)."""
-        return apply_halves(self.halves, self.model, batch, self.reduce_grads, self.grad_clip)
+        metrics = apply_halves(self.halves, self.model, batch, self.reduce_grads, self.grad_clip)
+        if self.prior_ema is not None and "m_grad_norm" in metrics:
+            self.prior_ema.update()  # apply_halves stops on NaN, which the loop then raises
+        return metrics
+
+    def extra_state(self) -> dict[str, nn.Module]:
+        """Modules besides the model and optimizers that a resume state must keep."""
+        return {} if self.prior_ema is None else {"prior_ema": self.prior_ema}
 
 
 class VIUpdater:
@@ -217,6 +260,9 @@ class VIUpdater:
         """One joint step; metrics as 0-d tensors on the model's device."""
         return apply_halves(self.halves, self.model, batch, self.reduce_grads, self.grad_clip)
 
+    def extra_state(self) -> dict[str, nn.Module]:
+        return {}
+
 
 def make_updater(
     method: str,
@@ -228,11 +274,15 @@ def make_updater(
     compile: bool = False,
     dtype: str = "float32",
     e_kl: str = "sampled",
+    prior_ema: float | None = None,
 ) -> EMUpdater | VIUpdater:
-    """`em` (the paper's algorithm; its E-step's KL `e_kl`) or `vi` (the naive ablation; uses
-    `lr_m`), multiplying in `dtype` (float32, or bfloat16 under autocast)."""
+    """`em` (the paper's algorithm; its E-step's KL `e_kl`, its prior an EMA of rate
+    `prior_ema` or the current one) or `vi` (the naive ablation; uses `lr_m`), multiplying in
+    `dtype` (float32, or bfloat16 under autocast)."""
     if method == "em":
-        return EMUpdater(model, lr_e, lr_m, grad_clip, reduce_grads, compile, dtype, e_kl)
+        return EMUpdater(
+            model, lr_e, lr_m, grad_clip, reduce_grads, compile, dtype, e_kl, prior_ema
+        )
     return VIUpdater(model, lr_m, grad_clip, reduce_grads, compile, dtype)
 
 
@@ -243,5 +293,5 @@ def updater_for(
     `oposm bench train` run)."""
     return make_updater(
         cfg.method, model, cfg.lr_e, cfg.lr_m, cfg.grad_clip, reduce_grads, cfg.compile,
-        cfg.dtype, cfg.e_kl,
+        cfg.dtype, cfg.e_kl, cfg.prior_ema if cfg.e_prior == "ema" else None,
     )  # fmt: skip

@@ -1,0 +1,125 @@
+"""`results/stability-cpu.{md,json}`: EM across seeds, per recipe (`scripts/stability_cpu.sh`).
+
+Each `--run "RECIPE SEED RUN_DIR"` is a run folder holding `oposm train`'s `metrics/train.json`
+and `oposm deploy`'s `metrics/deploy.json` (random goals). A recipe is stable on a seed when its
+validation s_T NLL with prior skills is within `NLL_BAND` of the recipe's median and its
+random-goal success is at least `MIN_SUCCESS`; a run not yet finished is listed as missing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+from pathlib import Path
+
+from runs_report import this_machine  # scripts/ is this script's own folder on sys.path
+
+from pipeline.evaluation.proportions import wilson_interval
+from pipeline.io import atomic_path, write_json
+from stages.results_common import code_version, read
+
+NLL_BAND = 0.5  # nats around the recipe's median
+MIN_SUCCESS = 0.95  # random goals reached
+
+
+def _run(text: str) -> tuple[str, int, Path]:
+    recipe, seed, folder = text.split(maxsplit=2)
+    return recipe, int(seed), Path(folder)
+
+
+def collect(runs: list[tuple[str, int, Path]]) -> list[dict]:
+    rows = []
+    for recipe, seed, folder in runs:
+        train, deploy = read(folder / "metrics/train.json"), read(folder / "metrics/deploy.json")
+        row = {"recipe": recipe, "seed": seed, "run": str(folder)}
+        if train is not None:
+            row |= {
+                "published_step": train["best_step"],
+                "val_st_nll_prior": train["best_val_st_nll_prior"],
+                "diverged": train.get("diverged"),
+                "steps_per_s": train.get("steps_per_s"),
+            }
+        if deploy is not None:
+            for task, result in deploy["oposm"].items():
+                if isinstance(result, dict) and "success" in result:
+                    row |= {f"{task}_success": result["success"], f"{task}_episodes":
+                            result["episodes"]}  # fmt: skip
+        rows.append(row)
+    for recipe in {r["recipe"] for r in rows}:
+        mine = [r for r in rows if r["recipe"] == recipe and "val_st_nll_prior" in r]
+        median = statistics.median(r["val_st_nll_prior"] for r in mine) if mine else None
+        for r in mine:
+            if "random_goal_success" in r:
+                r["stable"] = bool(
+                    abs(r["val_st_nll_prior"] - median) <= NLL_BAND
+                    and r["random_goal_success"] >= MIN_SUCCESS
+                )
+    return rows
+
+
+def _success(row: dict, task: str) -> str:
+    """`k/n` with its Wilson interval, or empty."""
+    if f"{task}_success" not in row:
+        return ""
+    n = row[f"{task}_episodes"]
+    k = round(row[f"{task}_success"] * n)
+    low, high = wilson_interval(k, n)
+    return f"{100 * k / n:.0f} % [{100 * low:.0f}, {100 * high:.0f}], {k}/{n}"
+
+
+def markdown(rows: list[dict], commit: str) -> str:
+    lines = [
+        "# EM across seeds: every run trained and deployed",
+        "",
+        f"Written by `scripts/stability_report.py` (numbers: `stability-cpu.json`). Commit "
+        f"{commit}; machine: {this_machine()}.",
+        "",
+        "Command: `bash scripts/stability_cpu.sh` (two runs at a time, one torch thread each; "
+        "the main job's params in bfloat16, 5000 steps; deploy: the main job's 100 random goals "
+        "and 100 corner-to-corner episodes). A run is stable when its validation s_T NLL with "
+        f"prior skills is within {NLL_BAND} of its recipe's median and it reaches at least "
+        f"{MIN_SUCCESS:.0%} of the random goals. Recipes: ema = the shipped params "
+        "(`train.e_prior: ema`); paper = `train.e_prior: current` (the paper's E-step and the "
+        "previous default; its earlier runs, on another CPU and code version: "
+        "`git show ad9de92:results/stability-cpu.md`); censored and layernorm = the paper's "
+        "E-step with `train.action_likelihood: censored` or `train.policy_trunk: "
+        "layernorm_silu`.",
+        "",
+        "| recipe | seed | published step | val s_T NLL, prior skills | diverged | random_goal "
+        "(Wilson 95 %) | corners | stable |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        if "val_st_nll_prior" not in r:
+            lines.append(f"| {r['recipe']} | {r['seed']} | not run yet | | | | | |")
+            continue
+        stable = {True: "yes", False: "no"}.get(r.get("stable"), "")
+        lines.append(
+            f"| {r['recipe']} | {r['seed']} | {r['published_step']} | "
+            f"{r['val_st_nll_prior']:.3f} | {r.get('diverged')} | "
+            f"{_success(r, 'random_goal')} | {_success(r, 'corners')} | {stable} |"
+        )
+    lines += ["", "| recipe | runs finished | stable |", "|---|---|---|"]
+    for recipe in dict.fromkeys(r["recipe"] for r in rows):
+        mine = [r for r in rows if r["recipe"] == recipe]
+        done = [r for r in mine if "stable" in r]
+        lines.append(
+            f"| {recipe} | {len(done)} of {len(mine)} | {sum(r['stable'] for r in done)} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--run", action="append", default=[], help="'RECIPE SEED RUN_DIR'")
+    parser.add_argument("--out", type=Path, required=True, help="results/<name> (no suffix)")
+    args = parser.parse_args()
+    rows = collect([_run(text) for text in args.run])
+    commit = code_version(Path.cwd()) or "unknown"
+    write_json(args.out.with_suffix(".json"), {"commit": commit, "runs": rows})
+    with atomic_path(args.out.with_suffix(".md")) as tmp:
+        tmp.write_text(markdown(rows, commit))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,51 @@
+"""scripts/stability_report.py: runs of several recipes and seeds -> the stability table, with
+a run stable only when its NLL is near its recipe's median and its random goals are reached."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = ROOT / "scripts/stability_report.py"
+
+
+def _run_folder(root: Path, step: int, nll: float, success: float | None) -> Path:
+    (root / "metrics").mkdir(parents=True)
+    train = {"best_step": step, "best_val_st_nll_prior": nll, "diverged": nll > 3}
+    (root / "metrics/train.json").write_text(json.dumps(train))
+    if success is not None:
+        goal = {"success": success, "episodes": 100}
+        corners = {"success": 0.5, "episodes": 10}
+        deploy = {"oposm": {"random_goal": goal, "corners": corners, "flops": 3}}
+        (root / "metrics/deploy.json").write_text(json.dumps(deploy))
+    return root
+
+
+def test_stability_table_marks_each_run_against_its_recipe(tmp_path):
+    runs = {
+        ("new", 0): (5000, 1.40, 0.97),
+        ("new", 1): (5000, 1.60, 0.99),
+        ("new", 2): (5000, 2.30, 0.98),  # 0.7 above the median (1.6)
+        ("new", 3): (4750, 1.50, 0.90),  # below 95 % of the goals
+        ("old", 0): (500, 3.40, 0.60),
+    }
+    args = []
+    for (recipe, seed), numbers in runs.items():
+        folder = _run_folder(tmp_path / f"{recipe}-{seed}", *numbers)
+        args += ["--run", f"{recipe} {seed} {folder}"]
+    args += ["--run", f"old 1 {tmp_path / 'missing'}"]
+    out = tmp_path / "results" / "stability"
+    out.parent.mkdir()
+    subprocess.run([sys.executable, SCRIPT, "--out", out, *args], check=True, cwd=ROOT)
+    report = json.loads(out.with_suffix(".json").read_text())
+    stable = {(r["recipe"], r["seed"]): r.get("stable") for r in report["runs"]}
+    assert stable == {("new", 0): True, ("new", 1): True, ("new", 2): False,
+                      ("new", 3): False, ("old", 0): False, ("old", 1): None}  # fmt: skip
+    first = report["runs"][0]
+    assert first["published_step"] == 5000 and first["random_goal_success"] == 0.97
+    text = out.with_suffix(".md").read_text()
+    row = "| new | 0 | 5000 | 1.400 | False | 97 % [92, 99], 97/100 | 50 % [24, 76], 5/10 | yes |"
+    assert row in text
+    assert "| old | 1 | not run yet |" in text
+    assert "| new | 4 of 4 | 2 |" in text
