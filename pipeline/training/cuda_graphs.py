@@ -23,6 +23,7 @@ captured.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -42,6 +43,7 @@ class _Captured:
     metrics: dict[str, torch.Tensor]  # static outputs of `grads`, overwritten by each replay
     finite: torch.Tensor
     norm_name: str
+    after_step: Callable[[], None] | None  # the half's, run eagerly after `apply`
 
 
 class CudaGraphUpdater:
@@ -89,9 +91,8 @@ class CudaGraphUpdater:
             if not bool(half.finite):  # skipped: nothing changed; the loop stops on it
                 return metrics
             half.apply.replay()
-        if getattr(self.inner, "prior_ema", None) is not None:
-            # updated in place, outside the graphs: the E-step graph reads its weights there
-            self.inner.prior_ema.update()
+            if half.after_step is not None:  # in place, outside the graphs, which read it there
+                half.after_step()
         return metrics
 
     def _capture(self, batch: WindowBatch) -> None:
@@ -118,7 +119,9 @@ class CudaGraphUpdater:
                 apply = torch.cuda.CUDAGraph()
                 with torch.cuda.graph(apply, pool=pool):
                     half.optimizer.step()
-                captured.append(_Captured(grads, apply, metrics, finite, half.norm_name))
+                captured.append(
+                    _Captured(grads, apply, metrics, finite, half.norm_name, half.after_step)
+                )
         except RuntimeError as e:
             raise UserError(
                 f"train.cuda_graph: capturing the training step failed ({e}); "

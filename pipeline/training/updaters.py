@@ -96,13 +96,15 @@ def backward(
 
 @dataclass
 class HalfStep:
-    """One optimizer's part of an update: its loss, the parameters it moves, the optimizer, and
-    the metric name its gradient norm is reported under."""
+    """One optimizer's part of an update: its loss, the parameters it moves, the optimizer, the
+    metric name its gradient norm is reported under, and what runs after each optimizer step it
+    takes (`after_step`, e.g. `EMAPrior.update`; not part of a captured CUDA graph)."""
 
     loss: Loss
     params: list[nn.Parameter]
     optimizer: torch.optim.Optimizer
     norm_name: str
+    after_step: Callable[[], None] | None = None
 
 
 def apply_half(
@@ -122,6 +124,8 @@ def apply_half(
     finite = bool(backward(loss, metrics, half.params, half.optimizer, reduce_grads, grad_clip))
     if finite:
         half.optimizer.step()
+        if half.after_step is not None:
+            half.after_step()
     else:
         half.optimizer.zero_grad(set_to_none=True)
     metrics[half.norm_name] = metrics.pop("grad_norm")
@@ -204,7 +208,7 @@ class EMUpdater:
             HalfStep(prepared(e_loss, compile, dtype), e_params,
                      self.optimizers["e"], "e_grad_norm"),
             HalfStep(prepared(m_step_loss, compile, dtype), m_params, self.optimizers["m"],
-                     "m_grad_norm"),
+                     "m_grad_norm", self.prior_ema.update if self.prior_ema else None),
         ]  # fmt: skip
         self.grad_clip = grad_clip
         self.reduce_grads = reduce_grads
@@ -216,19 +220,11 @@ class EMUpdater:
 
     def m_step(self, batch: WindowBatch) -> tuple[dict[str, torch.Tensor], bool]:
         """One Adam step on policy, TAWM and prior (theta, psi, omega) minimizing eq. 16."""
-        metrics, finite = apply_half(
-            self.halves[1], self.model, batch, self.reduce_grads, self.grad_clip
-        )
-        if finite and self.prior_ema is not None:
-            self.prior_ema.update()
-        return metrics, finite
+        return apply_half(self.halves[1], self.model, batch, self.reduce_grads, self.grad_clip)
 
     def step(self, batch: WindowBatch) -> dict[str, torch.Tensor]:
         """E-step then M-step (not the M-step after a non-finite E-step)."""
-        metrics = apply_halves(self.halves, self.model, batch, self.reduce_grads, self.grad_clip)
-        if self.prior_ema is not None and "m_grad_norm" in metrics:
-            self.prior_ema.update()  # apply_halves stops on NaN, which the loop then raises
-        return metrics
+        return apply_halves(self.halves, self.model, batch, self.reduce_grads, self.grad_clip)
 
     def extra_state(self) -> dict[str, nn.Module]:
         """Modules besides the model and optimizers that a resume state must keep."""
