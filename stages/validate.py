@@ -92,3 +92,14 @@ def _log(report: dict[str, Any]) -> None:
                 m["tawm_within_2sigma"],
                 100 * m["single_step_wall_crossing"],
             )
+            if "replay_error_mean" in m:
+                log.info(
+                    "%-9s %-8s %4d steps: skill replay error %.3f m (TAWM vs recorded %.3f m, "
+                    "no model %.3f m)",
+                    mode,
+                    key,
+                    m["steps"],
+                    m["replay_error_mean"],
+                    m["tawm_recorded_error_mean"],
+                    m["no_model_recorded_error_mean"],
+                )

@@ -53,6 +53,8 @@ class ModeResult:
         tawm_mean: `[B, L, sd]` chained TAWM means after 1..L skills.
         pred_mean, pred_std: `[B, L, sd]` the TAWM's moment-matched predictive distribution.
         single_step: `[B, L H + 1, sd]` single-step model's mean rollout.
+        recorded: `[B, L H + 1, sd]` the recorded states the skills were inferred from (the
+            posterior mode; None for the prior's skills, which no recording produced).
     """
 
     real: np.ndarray
@@ -61,6 +63,7 @@ class ModeResult:
     pred_mean: np.ndarray
     pred_std: np.ndarray
     single_step: np.ndarray
+    recorded: np.ndarray | None = None
 
 
 @dataclass
@@ -308,6 +311,7 @@ def run_open_loop(
                 pred_mean=_np(rep(pred_mean)),
                 pred_std=_np(rep(pred_std)),
                 single_step=_np(single),
+                recorded=None if mode == "prior" else _np(rep(rec_states)),
             )
     return OpenLoopResult(
         horizon=horizon,

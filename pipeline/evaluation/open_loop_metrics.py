@@ -138,6 +138,16 @@ def horizon_metrics(
     for name, err in errors.items():
         stats = summary(err)
         out[f"{name}_error_mean"], out[f"{name}_error_median"] = stats["mean"], stats["median"]
+    if result.recorded is not None:  # skill fidelity: does executing z replay its window?
+        recorded = result.recorded[:, t, pos]
+        fidelity = {
+            "replay": position_error(real[:, pos], recorded),
+            "tawm_recorded": position_error(result.tawm_mean[:, k - 1, pos], recorded),
+            "no_model_recorded": position_error(result.real[:, 0, pos], recorded),
+        }
+        for name, err in fidelity.items():
+            stats = summary(err)
+            out[f"{name}_error_mean"], out[f"{name}_error_median"] = stats["mean"], stats["median"]
     out["tawm_nll"] = float(nll.mean())
     for n_sigma in EXPECTED_WITHIN:
         frac = within_sigma(real, mean, std, n_sigma)
@@ -161,6 +171,10 @@ def open_loop_report(
     - `tawm_nll`: -log of the real state under the TAWM's predictive Gaussian (nats, in the
       train-normalized state units of train's `val/st_nll`);
     - `tawm_within_{1,2}sigma` (+ `_per_dim`): calibration, ideally 0.683 / 0.954;
+    - posterior mode only, skill fidelity against the recorded states the skills were inferred
+      from: `replay_error_*` (executed vs recorded, after k skills), `tawm_recorded_error_*`,
+      `no_model_recorded_error_*` (s_0 vs recorded); a policy that cannot replay its own
+      skills (replay error near no model's) leaves a planner nothing to chain;
     - `single_step_wall_crossing`: fraction of single-step rollouts whose path entered a wall
       cell within these k H steps; `tawm_end_in_wall`: TAWM chained means inside a wall.
 
