@@ -40,7 +40,12 @@ app = typer.Typer(
 )
 
 ParamsOption = Annotated[
-    Path, typer.Option("--params", "-p", help="Params file (one section per stage).")
+    Path,
+    typer.Option(
+        "--params",
+        "-p",
+        help="Params file (one section per stage), or a variant: `extends: <base>` + what differs.",
+    ),
 ]
 SetOption = Annotated[
     list[str] | None,
@@ -239,8 +244,11 @@ def _paths(params: Path, overrides: list[str] | None, data: Path | None, run: st
     adhoc = bool(overrides) or params.resolve() != PIPELINE_PARAMS.resolve()
     if run is None and (not adhoc or os.environ.get("DVC_STAGE")):
         return Paths(data)
-    if run is None:
-        key = hashlib.sha256(params.read_bytes() + "\0".join(overrides or []).encode())
+    if run is None:  # the files a variant resolves from: a changed base is another run
+        from pipeline.config import params_files
+
+        text = b"".join(path.read_bytes() for path in params_files(params))
+        key = hashlib.sha256(text + "\0".join(overrides or []).encode())
         run = f"adhoc-{key.hexdigest()[:8]}"
         log.info(
             "--set/--params differ from the pipeline's: this run writes under %s "

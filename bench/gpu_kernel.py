@@ -23,10 +23,13 @@ from pathlib import Path
 
 import torch
 
-from pipeline.model import SkillModel, SkillModelConfig
+from pipeline.config import PlannerParams, TrainParams
+from pipeline.model import SkillModel
 from pipeline.model.checkpoint import load_model
-from pipeline.planning import GoalCost, PlannerConfig, SkillPlanner
+from pipeline.model.settings import skill_model_config
+from pipeline.planning import GoalCost, SkillPlanner
 from pipeline.planning.fused import PlannerNets
+from pipeline.planning.settings import planner_config
 from pipeline.planning.triton_rollout import TritonNets
 
 VARIANTS = {  # label: (weights dtype, precision, warps)
@@ -66,10 +69,10 @@ def _models(data: Path, device: str) -> dict[str, SkillModel]:
     if trained.exists():
         default, _ = load_model(trained, device=device)
     else:
-        default = SkillModel(SkillModelConfig(4, 2, z_dim=16, hidden=128)).to(device)
+        default = SkillModel(skill_model_config(TrainParams(), 4, 2)).to(device)
     torch.manual_seed(0)
-    paper = SkillModel(SkillModelConfig(4, 2, z_dim=256, hidden=256)).to(device)
-    ant = SkillModel(SkillModelConfig(29, 8, z_dim=64, hidden=256)).to(device)
+    paper = SkillModel(skill_model_config(TrainParams(z_dim=256, hidden=256), 4, 2)).to(device)
+    ant = SkillModel(skill_model_config(TrainParams(z_dim=64, hidden=256), 29, 8)).to(device)
     return {"default": default, "paper": paper, "ant": ant}
 
 
@@ -77,7 +80,7 @@ def _bench_shape(
     model: SkillModel, problems: int, variants: dict, repeats: int, key: str, device: str
 ) -> dict[str, float]:
     """The torch rollout + cost and each kernel variant on `problems` x 100 candidates."""
-    planner = SkillPlanner(model, PlannerConfig(10))
+    planner = SkillPlanner(model, planner_config(PlannerParams()))  # its rollout only
     sd, z = model.config.state_dim, model.config.z_dim
     g = torch.Generator().manual_seed(problems)
     eps = torch.randn(problems, 100, 10, z, generator=g).to(device)

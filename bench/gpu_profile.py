@@ -19,15 +19,17 @@ from pathlib import Path
 import torch
 from torch.profiler import ProfilerActivity, profile
 
-from pipeline.config import load_params
-from pipeline.model import SkillModel, SkillModelConfig
+from pipeline.config import PlannerParams, TrainParams, load_params
+from pipeline.model import SkillModel
 from pipeline.model.checkpoint import load_model
+from pipeline.model.settings import skill_model_config
 from pipeline.paths import Paths
-from pipeline.planning import CEMConfig, GoalCost, PlannerConfig, SkillPlanner, problem_keys
+from pipeline.planning import GoalCost, SkillPlanner, problem_keys
+from pipeline.planning.settings import planner_config
 from pipeline.segments import load_segments
 from pipeline.training.data import WindowBatch, WindowSampler
 from pipeline.training.losses import e_objective, m_objective, vi_objective
-from pipeline.training.updaters import make_updater
+from pipeline.training.updaters import updater_for
 
 
 def _sync(device: torch.device) -> None:
@@ -65,9 +67,11 @@ def profile_plans(params, paths: Paths, device: torch.device, compile: bool) -> 
     s0 = torch.as_tensor(segments.states[:1], dtype=torch.float32, device=device)
     goals = s0[:, :2] + 1.0
     out = {}
+    default = PlannerParams(prior_weight=0.0, compile=compile)  # the CEM sizes; the paper's cost
+    table14 = default.model_copy(update={"elites": 50, "iterations": 100})
     for label, config in (
-        ("default", PlannerConfig(10, CEMConfig(100, 20, 20), compile=compile)),
-        ("table14", PlannerConfig(10, CEMConfig(100, 50, 100), compile=compile)),
+        ("default", planner_config(default)),
+        ("table14", planner_config(table14)),
     ):
         planner = SkillPlanner(model, config)
         keys = problem_keys([0], device)
@@ -92,10 +96,9 @@ def profile_train(params, paths: Paths, device: torch.device, compile: bool) -> 
     out = {}
     for compiled in (False, True) if compile else (False,):
         torch.manual_seed(0)
-        config = SkillModelConfig(segments.info.state_dim, segments.info.action_dim, cfg.z_dim,
-                                  cfg.hidden, cfg.tawm_shared_std, cfg.min_std)  # fmt: skip
+        config = skill_model_config(cfg, segments.info.state_dim, segments.info.action_dim)
         model = SkillModel(config).to(device)
-        updater = make_updater("em", model, cfg.lr_e, cfg.lr_m, None, compile=compiled)
+        updater = updater_for(cfg.model_copy(update={"compile": compiled}), model)
         got = kernel_profile(lambda updater=updater: updater.step(batch), device)
         label = "compiled" if compiled else "eager"
         out |= {f"train_paper_{label}_step_{k}": v for k, v in got.items()}
@@ -107,7 +110,7 @@ def gradient_gap(device: torch.device) -> dict[str, float]:
     """Largest absolute and relative gaps of the objectives' gradients, device vs CPU, with
     cuDNN's TF32 on (torch's default) and off."""
     torch.manual_seed(0)
-    cpu = SkillModel(SkillModelConfig(4, 2, z_dim=8, hidden=64))
+    cpu = SkillModel(skill_model_config(TrainParams(z_dim=8, hidden=64), 4, 2))
     cpu.set_normalization([0.5, -0.5, 0.0, 0.0], [2.0, 2.0, 1.0, 1.0], [0.0, 0.0], [0.5, 0.5])
     g = torch.Generator().manual_seed(1)
     batch = WindowBatch(torch.randn(32, 11, 4, generator=g), torch.randn(32, 10, 2, generator=g))

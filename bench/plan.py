@@ -32,13 +32,13 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from bench.reference import ReferencePlanner
 from bench.roofline import roofline
-from pipeline.config import Params
+from pipeline.config import Params, PlannerParams
 from pipeline.devices import resolve_device
 from pipeline.envs.spec import make_env_spec
 from pipeline.evaluation.tasks import train_locations
 from pipeline.model.checkpoint import load_dynamics, load_model, load_policy
 from pipeline.paths import Paths
-from pipeline.planning import CEMConfig, GoalCost, PlannerConfig, SkillPlanner, problem_keys
+from pipeline.planning import GoalCost, SkillPlanner, problem_keys
 from pipeline.planning.llp import LowLevelPlanner
 from pipeline.planning.settings import llp_config, planner_config
 from pipeline.segments import load_segments
@@ -78,9 +78,12 @@ def _planners(
     cfg, name = params.deploy, params.ingest.name
     model, _ = load_model(paths.existing(paths.model(name)), device=device)
     default = replace(planner_config(cfg.planner), compile=False)
-    table14 = PlannerConfig(  # the paper's CEM numbers, our arithmetic (deploy.planner.dtype)
-        10, CEMConfig(100, 50, 100, stop_cost=cfg.planner.stop_cost), dtype=default.dtype
-    )
+    table14 = planner_config(  # the paper's CEM and cost, our arithmetic (deploy.planner.dtype)
+        PlannerParams(
+            horizon=10, candidates=100, elites=50, iterations=100, prior_weight=0.0,
+            stop_cost=cfg.planner.stop_cost, dtype=default.dtype,
+        )
+    )  # fmt: skip
     out = {}
     for label, config in (("oposm", default), ("oposm_table14", table14)):
         out[label] = (SkillPlanner(model, config), True)

@@ -1,7 +1,14 @@
 """Typed params: one pydantic model per stage, matching the sections of `params.yaml` one to one.
 
 Every model forbids unknown keys, so a typo in `params.yaml` (or in a `--set` override) is an error
-that names the key instead of a silently ignored setting.
+that names the key instead of a silently ignored setting. The models are the one source of every
+default: `params.yaml` spells each of them out, and the library's configs take every value from
+these models (`pipeline.planning.settings`, `pipeline.model.settings`, `updater_for`).
+
+A params variant (`params-paper.yaml`, `params-ogbench-*.yaml`) is an overlay: its first key,
+`extends: <file>` (relative to the variant), names the file it builds on, and it holds only the
+keys that differ. Loading merges it onto its base (`read_params_file`), then applies the `-S`
+overrides, then validates; the experts' params files load the same way (`load_model_file`).
 """
 
 from __future__ import annotations
@@ -452,7 +459,7 @@ class SubgoalParams(_Section):
         True,
         description="Aim at the goal, or at a waypoint, only when the straight line to it crosses "
         "cells the data visits (no wall between), else at the best waypoint in sight; false: "
-        "by skill hops alone (the rule before it).",
+        "by skill hops alone.",
     )
 
 
@@ -606,11 +613,13 @@ class Params(_Section):
     deploy: DeployParams = Field(default_factory=DeployParams)
 
 
-def _format_validation_error(err: ValidationError, source: str) -> str:
+def _format_validation_error(
+    err: ValidationError, source: str, root: type[BaseModel] | None = None
+) -> str:
     first = err.errors()[0]
     key = ".".join(str(p) for p in first["loc"]) or "<root>"
     if first["type"] in ("extra_forbidden", "unexpected_keyword_argument"):
-        valid = ", ".join(_section_keys(first["loc"][:-1]))
+        valid = ", ".join(_section_keys(first["loc"][:-1], root or Params))
         return f"{source}: unknown key '{key}'; valid keys here: {valid}"
     expected = first["msg"]
     got = first.get("input")
@@ -623,9 +632,9 @@ def _keys(model: type[BaseModel]) -> dict[str, Any]:
     return {field.alias or name: field for name, field in model.model_fields.items()}
 
 
-def _section_keys(loc: tuple) -> list[str]:
-    """Keys of the (nested) section at `loc`, for error messages."""
-    model: type = Params
+def _section_keys(loc: tuple, root: type[BaseModel]) -> list[str]:
+    """Keys of the (nested) section at `loc` of the `root` model, for error messages."""
+    model: type = root
     for part in loc:
         field = _keys(model).get(str(part)) if issubclass(model, BaseModel) else None
         if field is None or not isinstance(field.annotation, type):
@@ -681,23 +690,116 @@ def _yaml_problem(exc: yaml.YAMLError) -> str:
     return f"line {mark.line + 1}, column {mark.column + 1}: {problem}"
 
 
-def load_params(path: str | Path = "params.yaml", overrides: list[str] | None = None) -> Params:
-    """Load and validate `params.yaml`, applying `section.key=value` overrides for this run.
+EXTENDS = "extends"  # a variant's key naming the params file it overlays
 
-    Raises:
-        UserError: the file is missing or not YAML, a key is unknown or a value has the wrong type.
-    """
-    path = Path(path)
+
+def merge_params(base: dict[str, Any], overlay: dict[str, Any]) -> dict[str, Any]:
+    """`overlay` deep-merged onto `base` (a new dict): mappings merge key by key, recursively;
+    any other value (a scalar, a list, null) replaces the base's."""
+    merged = _deep_copy(base)
+    for key, value in overlay.items():
+        if isinstance(value, dict) and isinstance(merged.get(key), dict):
+            merged[key] = merge_params(merged[key], value)
+        else:
+            merged[key] = _deep_copy(value) if isinstance(value, dict) else value
+    return merged
+
+
+def _read_mapping(path: Path, what: str, hint: str, sections: str) -> dict[str, Any]:
+    """One params file's YAML mapping, as written."""
     if not path.exists():
-        raise UserError(f"params file {path} not found; run from the project root or pass --params")
+        raise UserError(f"{what} {path} not found; {hint}")
     try:
         raw = yaml.safe_load(path.read_text()) or {}
     except yaml.YAMLError as exc:
         raise UserError(f"{path} is not valid YAML: {_yaml_problem(exc)}") from exc
     if not isinstance(raw, dict):
-        raise UserError(f"{path} must be a mapping of sections (ingest:, segment:, ...)")
+        raise UserError(f"{path} must be a mapping of sections ({sections})")
+    return raw
+
+
+def read_params_file(
+    path: str | Path,
+    what: str = "params file",
+    hint: str = "run from the project root or pass --params",
+    sections: str = "ingest:, segment:, ...",
+) -> tuple[dict[str, Any], list[Path]]:
+    """A params file as one mapping, its `extends` chain merged, before validation; and the
+    files it was read from (the file first, then its base, its base's base, ...).
+
+    Each file's `extends: <file>` (relative to that file) names its base; the file is
+    `merge_params`-ed onto it. `what`, `hint` and `sections` word the errors.
+
+    Raises:
+        UserError: a file is missing or not a YAML mapping, `extends` is not a file name, names
+            a missing file, or leads back to a file of the chain. One line, naming the file.
+    """
+    current = Path(path)
+    chain: list[Path] = []
+    layers: list[dict[str, Any]] = []
+    while True:
+        raw = _read_mapping(current, what, hint, sections)
+        chain.append(current)
+        layers.append(raw)
+        if EXTENDS not in raw:
+            break
+        base = raw.pop(EXTENDS)
+        if not isinstance(base, str) or not base.strip():
+            raise UserError(
+                f"{current}: '{EXTENDS}' must name the params file it overlays (a path relative "
+                f"to {current.name}), got {base!r}"
+            )
+        target = current.parent / base
+        if not target.exists():
+            raise UserError(f"{current}: '{EXTENDS}: {base}': base params file {target} not found")
+        if any(target.resolve() == seen.resolve() for seen in chain):
+            cycle = " -> ".join(str(p) for p in [*chain, target])
+            raise UserError(f"{current}: '{EXTENDS}: {base}' makes a cycle: {cycle}")
+        current = target
+    merged: dict[str, Any] = {}
+    for layer in reversed(layers):
+        merged = merge_params(merged, layer)
+    return merged, chain
+
+
+def params_files(path: str | Path) -> list[Path]:
+    """The files a params file resolves from: itself, then the bases it `extends` (what a DVC
+    stage run with `-p <variant>` lists as params deps, and what an ad-hoc run's folder key
+    hashes)."""
+    return read_params_file(path)[1]
+
+
+def load_model_file[M: BaseModel](
+    model: type[M],
+    path: str | Path,
+    overrides: list[str] | None = None,
+    what: str = "params file",
+    hint: str = "run from the project root or pass --params",
+    sections: str = "ingest:, segment:, ...",
+) -> M:
+    """`read_params_file`, then the `section.key=value` overrides, then `model`'s validation.
+
+    Raises:
+        UserError: see `read_params_file`; an override is malformed, a key is unknown or a value
+            is bad (the message names the file and the key).
+    """
+    raw, chain = read_params_file(path, what, hint, sections)
     raw = apply_overrides(raw, overrides or [])
     try:
-        return Params.model_validate(raw)
+        return model.model_validate(raw)
     except ValidationError as exc:
-        raise UserError(_format_validation_error(exc, str(path))) from exc
+        source = str(path)
+        if len(chain) > 1:
+            source += f" (extends {', '.join(str(p) for p in chain[1:])})"
+        raise UserError(_format_validation_error(exc, source, model)) from exc
+
+
+def load_params(path: str | Path = "params.yaml", overrides: list[str] | None = None) -> Params:
+    """Load and validate `params.yaml` or a variant (an overlay of it: `read_params_file`),
+    applying `section.key=value` overrides for this run.
+
+    Raises:
+        UserError: the file is missing or not YAML, its `extends` is broken, a key is unknown or
+            a value has the wrong type.
+    """
+    return load_model_file(Params, path, overrides)

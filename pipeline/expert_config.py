@@ -2,8 +2,9 @@
 
 The expert has its own params file next to the weights it produces (`experts/<robot>/params.yaml`),
 not a section of `params.yaml`: the main job never retrains it, and the file that produced a
-shipped actor stays beside it. Same rules as `params.yaml`: unknown keys and bad values are errors
-that name the key, and `section.key=value` overrides apply for one run.
+shipped actor stays beside it. It loads as `params.yaml` does (`pipeline.config.load_model_file`):
+a variant may overlay it (`extends: params.yaml`, only the keys that differ), unknown keys and bad
+values are errors that name the key, and `section.key=value` overrides apply for one run.
 """
 
 from __future__ import annotations
@@ -11,10 +12,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-import yaml
-from pydantic import Field, ValidationError, field_validator
+from pydantic import Field, field_validator
 
-from pipeline.config import _Section, apply_overrides
+from pipeline.config import _Section, load_model_file
 from pipeline.errors import UserError
 
 ROBOTS = ("ant",)
@@ -160,27 +160,18 @@ def check_robot(robot: str) -> str:
 
 
 def load_expert_params(path: str | Path, overrides: list[str] | None = None) -> AntExpertParams:
-    """Load and validate an expert params file, applying `section.key=value` overrides.
+    """Load and validate an expert params file (or an overlay of one: `extends`), applying
+    `section.key=value` overrides.
 
     Raises:
-        UserError: the file is missing or not YAML, a key is unknown or a value is bad.
+        UserError: the file is missing or not YAML, its `extends` is broken, a key is unknown or
+            a value is bad.
     """
-    path = Path(path)
-    if not path.exists():
-        raise UserError(f"expert params file {path} not found; run from the project root")
-    try:
-        raw = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as exc:
-        raise UserError(f"{path} is not valid YAML: {str(exc).splitlines()[0]}") from exc
-    if not isinstance(raw, dict):
-        raise UserError(f"{path} must be a mapping of sections (sac:, check:)")
-    raw = apply_overrides(raw, overrides or [])
-    try:
-        return AntExpertParams.model_validate(raw)
-    except ValidationError as exc:
-        first = exc.errors()[0]
-        key = ".".join(str(p) for p in first["loc"]) or "<root>"
-        if first["type"] == "extra_forbidden":
-            raise UserError(f"{path}: unknown key '{key}'") from exc
-        got = first.get("input")
-        raise UserError(f"{path}: bad value for '{key}': {first['msg']}, got {got!r}") from exc
+    return load_model_file(
+        AntExpertParams,
+        path,
+        overrides,
+        what="expert params file",
+        hint="run from the project root",
+        sections="sac:, check:",
+    )

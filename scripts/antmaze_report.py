@@ -23,8 +23,8 @@ from stages.results_common import read
 
 ROOT = Path(__file__).resolve().parents[1]
 
-# OGBench's paper, navigate datasets, success % (mean +- std over 8 seeds), as quoted in the
-# project's shared REFERENCES.md.
+# OGBench's paper, navigate datasets, success % (mean +- std over 8 seeds), as quoted in
+# docs/references.md.
 PUBLISHED = {
     "medium": {
         "GCBC": (29, 4),

@@ -27,9 +27,9 @@ from stages.results_common import read
 ROOT = Path(__file__).resolve().parents[1]
 TASKS = [f"ogbench-task{i}" for i in range(1, 6)]
 METHODS = ("GCBC", "GCIVL", "GCIQL", "QRL", "CRL", "HIQL")
-# OGBench's paper, success % (mean +- std over 8 seeds). Navigate datasets: as quoted in the
-# project's shared REFERENCES.md. Stitch datasets: OGBench's table as copied by later papers (its
-# navigate rows in those copies match REFERENCES.md cell for cell); not read from the paper here.
+# OGBench's paper, success % (mean +- std over 8 seeds). Navigate datasets: as quoted in
+# docs/references.md. Stitch datasets: OGBench's table as copied by later papers (its navigate
+# rows in those copies match the navigate table cell for cell); not read from the paper here.
 PUBLISHED = {
     "medium": [(9, 6), (63, 6), (53, 8), (82, 5), (29, 7), (79, 5)],
     "large": [(29, 6), (45, 5), (34, 3), (86, 9), (39, 7), (58, 5)],
@@ -38,8 +38,8 @@ PUBLISHED = {
     "large-stitch": [(7, 5), (12, 6), (31, 2), (84, 15), (0, 0), (13, 6)],
     "giant-stitch": [(0, 0), (0, 0), (0, 0), (50, 8), (0, 0), (0, 0)],
 }
-# Datasets we run whose published numbers are not quoted here (REFERENCES.md has no teleport rows,
-# and OGBench's table could not be read from this machine): reported without a verdict.
+# Datasets we run whose published numbers are not quoted here (docs/references.md has no teleport
+# rows, and OGBench's table could not be read from this machine): reported without a verdict.
 UNQUOTED = ("teleport", "teleport-stitch")
 DATASETS = [*PUBLISHED, *UNQUOTED]
 
@@ -84,8 +84,8 @@ def render(runs: list[dict], commands: list[str], machine: str) -> str:
         "intervals; one trained model and one deploy seed per dataset. Dataset: the maze alone is "
         "its navigate dataset, `-stitch` its stitch dataset (both made with OGBench's recipe, "
         "smaller than OGBench's files). Published: OGBench's paper, mean +- std over 8 seeds "
-        "(navigate: REFERENCES.md; stitch: OGBench's table as copied by later papers, whose "
-        "navigate rows match REFERENCES.md; teleport: not quoted, as neither source has it). "
+        "(navigate: docs/references.md; stitch: OGBench's table as copied by later papers, whose "
+        "navigate rows match it; teleport: not quoted, as neither source has it). "
         'Subgoal rows without "line of sight" in their '
         "label ran before `deploy.subgoals.line_of_sight` existed (the rule by skill hops alone, "
         "`line_of_sight: false`). The subgoal graph's jump rule (a window with a step longer "

@@ -44,5 +44,5 @@ uv run python scripts/runs_report.py --out results/precision-cpu \
   --deploy "bfloat16 model (seed 0), float32 planner=$runs/precision-bf16-s0" \
   --pair "float32 model, float32 planner|float32 model, bfloat16 planner" \
   --pair "float32 model, float32 planner|bfloat16 model (seed 0), float32 planner" \
-  --note "What the committed run shows is discussed in the README (Measured: deploy and the main job, \`train.dtype: bfloat16\`). Seeds 1 and 2 are only trained: their published checkpoints come from early steps, in both precisions, so they are not deployed." \
+  --note "What the committed run shows is discussed in CHANGELOG.md (Moved from the README: bfloat16 against float32). Seeds 1 and 2 are only trained: their published checkpoints come from early steps, in both precisions, so they are not deployed." \
   "$@"

@@ -99,7 +99,7 @@ def _oposm(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, devi
     if cfg.subgoals.enabled:
         sub = cfg.subgoals
         subgoals = SubgoalGraph.from_segments(
-            segments, spec.goal_dims, sub.cell, sub.reach, device, sub.line_of_sight
+            segments, spec.goal_dims, sub.cell, sub.reach, device, line_of_sight=sub.line_of_sight
         )
         log.info("subgoal graph: %d nodes (cells of %g m), reach %d skills%s",
                  len(subgoals.nodes), sub.cell, sub.reach,

@@ -22,6 +22,7 @@ from pipeline.errors import UserError
 from pipeline.io import atomic_dir, copy_dir, output_lock
 from pipeline.model import SkillModel, SkillModelConfig, save_model
 from pipeline.model.checkpoint import WEIGHTS_FILE
+from pipeline.model.settings import skill_model_config
 from pipeline.paths import Paths
 from pipeline.segments import Segments, load_segments
 from pipeline.training.cuda_graphs import CudaGraphUpdater
@@ -64,16 +65,7 @@ def model_config(cfg: TrainParams, segments: Segments) -> SkillModelConfig:
     if cfg.action_likelihood == "censored":  # the data's own bounds, where clipping piles up
         actions = segments.actions
         bounds = {"action_low": actions.min(0).tolist(), "action_high": actions.max(0).tolist()}
-    return SkillModelConfig(
-        state_dim=segments.info.state_dim,
-        action_dim=segments.info.action_dim,
-        z_dim=cfg.z_dim,
-        hidden=cfg.hidden,
-        tawm_shared_std=cfg.tawm_shared_std,
-        min_std=cfg.min_std,
-        policy_layer_norm=cfg.policy_trunk == "layernorm_silu",
-        **bounds,
-    )
+    return skill_model_config(cfg, segments.info.state_dim, segments.info.action_dim, **bounds)
 
 
 def _fingerprint(cfg: TrainParams, segments_dir: Path, world_size: int) -> str:

@@ -1,4 +1,5 @@
-"""Small real datasets built in memory, shared by the tests (`from factories import ...`)."""
+"""Small real datasets built in memory, and the library's configs built from the params models'
+defaults, shared by the tests (`from factories import ...`)."""
 
 from __future__ import annotations
 
@@ -79,3 +80,59 @@ def one_line_error(call) -> str:
     message = str(err.value)
     assert "\n" not in message
     return message
+
+
+# The library's configs have no defaults of their own (the params models in `pipeline.config` are
+# the one source): these build them from the params models' defaults, the pipeline's, with the
+# given params keys changed, through the builders the stages use.
+
+
+def planner_config(**changes):
+    """The skill planner's config of `deploy.planner` (`PlannerParams` keys: horizon, candidates,
+    elites, iterations, prior_weight, ...)."""
+    from pipeline.config import PlannerParams
+    from pipeline.planning.settings import planner_config as build
+
+    return build(PlannerParams(**changes))
+
+
+def llp_config(**changes):
+    """The low-level planner's config of `deploy.llp` (`LLPParams` keys)."""
+    from pipeline.config import LLPParams
+    from pipeline.planning.settings import llp_config as build
+
+    return build(LLPParams(**changes))
+
+
+def skill_model_config(state_dim: int, action_dim: int, action_low=None, action_high=None, **train):
+    """A skill model's config from `train` (`TrainParams` keys: z_dim, hidden, tawm_shared_std,
+    min_std, policy_trunk); `action_low` / `action_high`: censored action bounds."""
+    from pipeline.config import TrainParams
+    from pipeline.model.settings import skill_model_config as build
+
+    return build(TrainParams(**train), state_dim, action_dim, action_low, action_high)
+
+
+def dynamics_config(state_dim: int, action_dim: int, **changes):
+    """The single-step model's config from `dynamics` (`DynamicsParams` keys)."""
+    from pipeline.config import DynamicsParams
+    from pipeline.model.settings import dynamics_config as build
+
+    return build(DynamicsParams(**changes), state_dim, action_dim)
+
+
+def policy_config(state_dim: int, action_dim: int, goal_dims=(), **changes):
+    """A policy's config from `bc` (`BCParams` keys: hidden, min_std, learned_std)."""
+    from pipeline.config import BCParams
+    from pipeline.model.settings import policy_config as build
+
+    return build(BCParams(**changes), state_dim, action_dim, goal_dims)
+
+
+def train_updater(model, **train):
+    """The updater `oposm train` builds for `model` from `train` (`TrainParams` keys: method,
+    lr_e, lr_m, e_prior, prior_ema, e_kl, dtype, compile, grad_clip)."""
+    from pipeline.config import TrainParams
+    from pipeline.training.updaters import updater_for
+
+    return updater_for(TrainParams(**train), model)

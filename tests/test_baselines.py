@@ -5,7 +5,7 @@ through the episode runner, FLOPs counted around one replan."""
 import numpy as np
 import pytest
 import torch
-from factories import make_info, make_skill_episodes
+from factories import dynamics_config, llp_config, make_info, make_skill_episodes, policy_config
 
 from pipeline.config import BCParams, GCBCParams, LLPParams
 from pipeline.envs.batch import BatchSim
@@ -16,14 +16,12 @@ from pipeline.evaluation.episodes import RunConfig, run_episodes
 from pipeline.evaluation.flops import replan_flops
 from pipeline.evaluation.tasks import MazeTasks
 from pipeline.model.checkpoint import load_policy, save_policy
-from pipeline.model.dynamics import DynamicsConfig, DynamicsModel
-from pipeline.model.policy import GaussianPolicy, PolicyConfig
+from pipeline.model.dynamics import DynamicsModel
+from pipeline.model.policy import GaussianPolicy
 from pipeline.planning.agents import ExpertAgent, PolicyAgent
-from pipeline.planning.cem import CEMConfig
 from pipeline.planning.costs import GoalCost
-from pipeline.planning.llp import LLPConfig, LowLevelMPC, LowLevelPlanner
+from pipeline.planning.llp import LowLevelMPC, LowLevelPlanner
 from pipeline.planning.noise import problem_keys
-from pipeline.planning.settings import llp_config
 from pipeline.segments import build_segments
 from pipeline.sources.ogbench import generate_ogbench, make_recipe
 from pipeline.training.bc import episode_ends, fit_policy, hindsight_goals
@@ -61,7 +59,9 @@ def test_a_few_fitting_steps_lower_the_nll_and_the_checkpoint_round_trips(
     cfg = params(hidden=16, max_steps=60, eval_every=30, batch_size=64, val_transitions=100)
     goal_dims = (0, 1) if params is GCBCParams else ()
     torch.manual_seed(0)
-    untrained = GaussianPolicy(PolicyConfig(4, 2, goal_dims, 16, learned_std=cfg.learned_std))
+    untrained = GaussianPolicy(
+        policy_config(4, 2, goal_dims, hidden=16, learned_std=cfg.learned_std)
+    )
     policy, metrics = fit_policy(segments, cfg, torch.device("cpu"), goal_dims)
     assert policy.goal_conditioned == bool(goal_dims) and metrics["best_step"] in (30, 60)
     s = torch.as_tensor(segments.states[:50])
@@ -123,15 +123,17 @@ def test_gcbc_as_ogbench_fits_in_raw_units_and_keeps_its_last_parameters(ogbench
 @pytest.fixture(scope="module")
 def llp_models():
     torch.manual_seed(0)
-    policy = GaussianPolicy(PolicyConfig(4, 2, hidden=16)).eval()
-    dynamics = DynamicsModel(DynamicsConfig(4, 2, hidden=16)).eval()
+    policy = GaussianPolicy(policy_config(4, 2, hidden=16)).eval()
+    dynamics = DynamicsModel(dynamics_config(4, 2, hidden=16)).eval()
     dynamics.set_normalization({"delta_std": np.full(4, 0.05)})
     return policy, dynamics
 
 
 def test_llp_plans_actions_along_its_predicted_states(llp_models):
     policy, dynamics = llp_models
-    planner = LowLevelPlanner(policy, dynamics, LLPConfig(6, 3, CEMConfig(16, 4, 3)))
+    planner = LowLevelPlanner(
+        policy, dynamics, llp_config(horizon=6, execute=3, candidates=16, elites=4, iterations=3)
+    )
     s0 = torch.tensor([[0.0, 0.0, 0.0, 0.0], [1.0, -1.0, 0.2, 0.0]])
     goals = torch.tensor([[1.0, 1.0], [-1.0, 0.5]])
     plan = planner.plan(s0, GoalCost(goals), problem_keys([1, 2], "cpu"))
@@ -148,11 +150,13 @@ def test_llp_plans_actions_along_its_predicted_states(llp_models):
     alone = planner.plan(s0[1:], GoalCost(goals[1:]), problem_keys([2], "cpu"))
     assert torch.allclose(alone.eps[0], plan.eps[1], atol=1e-6)
     with pytest.raises(ValueError, match="p\\(a \\| s\\)"):
-        LowLevelPlanner(GaussianPolicy(PolicyConfig(4, 2, (0, 1), 8)), dynamics, LLPConfig())
+        LowLevelPlanner(
+            GaussianPolicy(policy_config(4, 2, (0, 1), hidden=8)), dynamics, llp_config()
+        )
 
 
 def test_llp_params_are_the_paper_codes_and_checked():
-    cfg = llp_config(LLPParams())
+    cfg = llp_config()  # from LLPParams()
     assert (cfg.horizon, cfg.execute, cfg.l2_penalty, cfg.plan_from) == (20, 5, 0.01, "mean")
     assert (cfg.cem.population, cfg.cem.elites, cfg.cem.iterations) == (100, 20, 5)
     assert not cfg.warm_start
@@ -162,7 +166,11 @@ def test_llp_params_are_the_paper_codes_and_checked():
 
 def test_llp_agent_executes_its_plan_then_replans(llp_models):
     policy, dynamics = llp_models
-    agent = LowLevelMPC(LowLevelPlanner(policy, dynamics, LLPConfig(4, 2, CEMConfig(8, 2, 2))))
+    agent = LowLevelMPC(
+        LowLevelPlanner(
+            policy, dynamics, llp_config(horizon=4, execute=2, candidates=8, elites=2, iterations=2)
+        )
+    )
     agent.reset(np.array([[1.0, 1.0], [0.0, 1.0], [2.0, 0.0]]), [5, 6, 7])
     rows, states = np.array([0, 2]), np.zeros((2, 4))
     plan = agent.replan(rows, states)
@@ -174,7 +182,7 @@ def test_llp_agent_executes_its_plan_then_replans(llp_models):
 
 def test_gcbc_agent_acts_towards_each_slots_goal():
     torch.manual_seed(0)
-    policy = GaussianPolicy(PolicyConfig(4, 2, (0, 1), 16)).eval()
+    policy = GaussianPolicy(policy_config(4, 2, (0, 1), hidden=16)).eval()
     agent = PolicyAgent(policy)
     goals = np.array([[1.0, 1.0], [-2.0, 0.5]])
     agent.reset(goals, [1, 2])
@@ -188,7 +196,7 @@ def test_gcbc_agent_acts_towards_each_slots_goal():
     sampler.reset(goals, [1, 2])
     np.testing.assert_array_equal(a, sampler.act(np.array([0, 1]), states))  # seeded per episode
     with pytest.raises(ValueError, match="goal-conditioned"):
-        PolicyAgent(GaussianPolicy(PolicyConfig(4, 2, hidden=8)))
+        PolicyAgent(GaussianPolicy(policy_config(4, 2, hidden=8)))
 
 
 def test_expert_agent_reaches_its_goals_through_the_episode_runner():

@@ -3,6 +3,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from factories import skill_model_config, train_updater
 
 from pipeline.config import Params, load_params
 from pipeline.errors import UserError
@@ -16,13 +17,14 @@ def _write(tmp_path, text):
     return path
 
 
-@pytest.mark.parametrize("name", ["params.yaml", "params-paper.yaml"])
-def test_repository_params_files_are_valid_and_complete(name):
-    params = load_params(ROOT / name)
-    # Every field is spelled out: dvc.yaml templates and `dvc exp run -S` need them.
+def test_params_yaml_is_valid_and_complete():
+    """Every field is spelled out in the base: dvc.yaml templates and `dvc exp run -S` need them.
+    The variants (params-*.yaml) are overlays holding only what differs from their base
+    (tests/test_params_overlays.py)."""
+    params = load_params(ROOT / "params.yaml")
     import yaml
 
-    raw = yaml.safe_load((ROOT / name).read_text())
+    raw = yaml.safe_load((ROOT / "params.yaml").read_text())
 
     def keys(d, prefix=""):
         out = set()
@@ -168,9 +170,8 @@ def test_runnable_others_sees_a_busy_process_and_not_this_ones_threads():
 def test_training_numbers_do_not_depend_on_the_thread_count(dtype):
     """What lets `AutoThreads` switch mid-run: an EM step gives the same bits on 1 and 2 threads
     (in either `train.dtype`)."""
-    from pipeline.model import SkillModel, SkillModelConfig
+    from pipeline.model import SkillModel
     from pipeline.training.data import WindowBatch
-    from pipeline.training.updaters import EMUpdater
 
     previous = torch.get_num_threads()
     results = []
@@ -178,8 +179,8 @@ def test_training_numbers_do_not_depend_on_the_thread_count(dtype):
         for threads in (1, 2):
             torch.set_num_threads(threads)
             torch.manual_seed(0)
-            model = SkillModel(SkillModelConfig(4, 2, z_dim=16, hidden=128))
-            updater = EMUpdater(model, lr_e=1e-3, lr_m=1e-3, dtype=dtype)
+            model = SkillModel(skill_model_config(4, 2, z_dim=16, hidden=128))
+            updater = train_updater(model, lr_e=1e-3, lr_m=1e-3, e_prior="current", dtype=dtype)
             generator = torch.Generator().manual_seed(1)
             states = torch.randn(64, 11, 4, generator=generator)
             actions = torch.randn(64, 10, 2, generator=generator)

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from factories import planner_config, skill_model_config
 from rerun.chunk import RrdReader
 from typer.testing import CliRunner
 
@@ -23,8 +24,8 @@ from pipeline.evaluation.proportions import wilson_interval
 from pipeline.evaluation.report import format_summary
 from pipeline.evaluation.stats import latency_summary, task_summary
 from pipeline.evaluation.tasks import EpisodeSpec, MazeTasks, check_goal
-from pipeline.model import SkillModel, SkillModelConfig, load_model, save_model
-from pipeline.planning import CEMConfig, PlannerConfig, SkillPlanner
+from pipeline.model import SkillModel, load_model, save_model
+from pipeline.planning import SkillPlanner
 from pipeline.planning.mpc import SkillMPC
 
 ENV_ID = "PointMaze_Medium-v3"
@@ -109,7 +110,7 @@ def test_batch_sim_steps_exactly_like_gymnasium(spec):
 @pytest.fixture(scope="module")
 def small_model() -> SkillModel:
     torch.manual_seed(0)
-    model = SkillModel(SkillModelConfig(4, 2, z_dim=3, hidden=16))
+    model = SkillModel(skill_model_config(4, 2, z_dim=3, hidden=16))
     model.set_normalization([0.0, 0.0, 0.0, 0.0], [2.0, 2.0, 2.0, 2.0], [0.0, 0.0], [0.5, 0.5])
     return model.eval()
 
@@ -119,7 +120,8 @@ def _specs(n: int, layout) -> list[EpisodeSpec]:
 
 
 def test_a_failing_episode_ends_alone_and_others_are_unchanged(small_model, spec, layout):
-    agent = SkillMPC(small_model, SkillPlanner(small_model, PlannerConfig(3, CEMConfig(8, 2, 2))))
+    config = planner_config(horizon=3, candidates=8, elites=2, iterations=2, prior_weight=0.0)
+    agent = SkillMPC(small_model, SkillPlanner(small_model, config), sample_actions=False)
     run_cfg = RunConfig(max_steps=30, replan_every=10)
     specs = _specs(3, layout)
     clean, _ = run_episodes(agent, BatchSim(spec, 3), specs, run_cfg)
@@ -282,7 +284,7 @@ def test_bad_deploy_inputs_are_one_line_errors(project, tmp_path):
     assert "deploy.planner.kernel=torch" in _one_line_error(runner.invoke(app, args))
     # A checkpoint whose states are not the maze's [x, y, vx, vy].
     model, meta = load_model(root / "data/models/tiny")
-    wrong = SkillModel(SkillModelConfig(6, 2, z_dim=4, hidden=32))
+    wrong = SkillModel(skill_model_config(6, 2, z_dim=4, hidden=32))
     data = tmp_path / "data"
     save_model(wrong, data / "models/tiny", {k: v for k, v in meta.items() if k != "model"})
     (data / "segments").mkdir(parents=True)

@@ -93,7 +93,7 @@ def _model_weights(repo: Path) -> bytes:
 
 @pytest.mark.slow
 def test_dvc_repro_experiments_compare_and_models_come_back_from_the_cache(repo):
-    """The DVC workflow of the README, in one pass (each `dvc repro` costs half a minute)."""
+    """The DVC workflow of docs/experiments.md in one pass (a `dvc repro` costs half a minute)."""
     first = _dvc(repo, "repro")
     assert "Running stage 'ingest'" in first and "Running stage 'segment'" in first
     assert "Running stage 'deploy'" in first and "random_goal  success" in first

@@ -9,20 +9,20 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
+from factories import planner_config, skill_model_config, train_updater
 
 from pipeline.envs.batch import BatchSim
 from pipeline.envs.spec import PointMazeSpec
 from pipeline.evaluation.episodes import RunConfig, run_episodes
 from pipeline.evaluation.tasks import EpisodeSpec
-from pipeline.model import SkillModel, SkillModelConfig
-from pipeline.planning import CEMConfig, GoalCost, PlannerConfig, SkillPlanner, problem_keys
+from pipeline.model import SkillModel
+from pipeline.planning import GoalCost, PlannerConfig, SkillPlanner, problem_keys
 from pipeline.planning.fused import PlannerNets
 from pipeline.planning.mpc import SkillMPC
 from pipeline.planning.triton_rollout import TritonNets
 from pipeline.training.cuda_graphs import CudaGraphUpdater
 from pipeline.training.data import WindowBatch
 from pipeline.training.losses import e_objective, m_objective, vi_objective
-from pipeline.training.updaters import EMUpdater, VIUpdater
 
 pytestmark = pytest.mark.gpu
 CLOSE = {"rtol": 1e-4, "atol": 1e-4}
@@ -30,7 +30,7 @@ CLOSE = {"rtol": 1e-4, "atol": 1e-4}
 
 def _model() -> SkillModel:
     torch.manual_seed(0)
-    model = SkillModel(SkillModelConfig(4, 2, z_dim=8, hidden=64))
+    model = SkillModel(skill_model_config(4, 2, z_dim=8, hidden=64))
     model.set_normalization([0.5, -0.5, 0.0, 0.0], [2.0, 2.0, 1.0, 1.0], [0.0, 0.0], [0.5, 0.5])
     return model
 
@@ -73,7 +73,7 @@ def _check_training_matches_cpu(device: str) -> None:
         torch.testing.assert_close(got[name], want[name], **CLOSE, msg=name)
     # A whole EM step runs on the device and moves the weights (z noise differs by device).
     before = [p.detach().cpu().clone() for p in dev.parameters()]
-    metrics = EMUpdater(dev, 1e-3, 1e-3).step(dev_batch)
+    metrics = train_updater(dev, lr_e=1e-3, lr_m=1e-3, e_prior="current").step(dev_batch)
     assert all(bool(torch.isfinite(v)) for v in metrics.values())
     assert all(not torch.equal(b, p.cpu()) for b, p in zip(before, dev.parameters(), strict=True))
 
@@ -85,8 +85,8 @@ def check_compiled_training_step_matches_eager(device: str) -> None:
     batch = WindowBatch(torch.randn(32, 11, 4, generator=g), torch.randn(32, 10, 2, generator=g))
     batch = WindowBatch(batch.states.to(device), batch.actions.to(device))
     for make in (
-        lambda m, c: EMUpdater(m, 1e-3, 1e-3, compile=c),
-        lambda m, c: VIUpdater(m, 1e-3, compile=c),
+        lambda m, c: train_updater(m, lr_e=1e-3, lr_m=1e-3, e_prior="current", compile=c),
+        lambda m, c: train_updater(m, method="vi", lr_m=1e-3, compile=c),
     ):
         runs = []
         graphs = torch._dynamo.utils.counters["stats"]["unique_graphs"]
@@ -122,10 +122,12 @@ def check_cuda_graph_training_matches_eager(device: str) -> None:
     torch.backends.cudnn.allow_tf32 = False
     try:
         for make in (
-            lambda m: EMUpdater(m, 1e-3, 1e-3, grad_clip=1.0),
-            lambda m: VIUpdater(m, 1e-3),
+            lambda m: train_updater(m, lr_e=1e-3, lr_m=1e-3, e_prior="current", grad_clip=1.0),
+            lambda m: train_updater(m, method="vi", lr_m=1e-3),
             # train.dtype bfloat16: autocast inside the captured losses (no weight-cast cache)
-            lambda m: EMUpdater(m, 1e-3, 1e-3, grad_clip=1.0, dtype="bfloat16"),
+            lambda m: train_updater(
+                m, lr_e=1e-3, lr_m=1e-3, e_prior="current", grad_clip=1.0, dtype="bfloat16"
+            ),
         ):
             runs = []
             for graphed in (False, True):
@@ -172,7 +174,8 @@ def check_planning_matches_cpu(device: str) -> None:
     torch.testing.assert_close(got.cpu(), _chain(cpu, s0, eps), **CLOSE)
 
     # The MPC on the device, twice (the second replan warm-starts), then in closed loop.
-    agent = SkillMPC(dev, SkillPlanner(dev, PlannerConfig(4, CEMConfig(32, 8, 4))))
+    config = planner_config(horizon=4, candidates=32, elites=8, iterations=4, prior_weight=0.0)
+    agent = SkillMPC(dev, SkillPlanner(dev, config), sample_actions=False)
     agent.reset(np.array([[1.0, 1.0], [-1.0, 0.5]]), seeds=[1, 2])
     states = np.array([[0.5, 0.5, 0.0, 0.0], [-0.5, 1.0, 0.1, -0.1]])
     for _ in range(2):
@@ -202,7 +205,7 @@ def check_graphed_planner_matches_eager(device: str) -> None:
     dev = copy.deepcopy(cpu).to(device)
     g = torch.Generator().manual_seed(3)
     s0, goals = torch.randn(3, 4, generator=g), torch.randn(3, 2, generator=g)
-    config = PlannerConfig(4, CEMConfig(32, 8, 6), prior_weight=0.5)
+    config = planner_config(horizon=4, candidates=32, elites=8, iterations=6, prior_weight=0.5)
     graphed = SkillPlanner(dev, PlannerConfig(**{**config.__dict__, "compile": True}))
     for rows in (slice(0, 3), slice(1, 3), slice(0, 3)):  # 3 -> graph of 4, 2 -> graph of 2
         keys = problem_keys([7, 8, 9], "cpu")[rows]
@@ -227,7 +230,9 @@ def check_triton_planner_matches_torch(device: str) -> None:
     g = torch.Generator().manual_seed(5)
     s0, goals = torch.randn(3, 4, generator=g).to(device), torch.randn(3, 2, generator=g).to(device)
     keys = problem_keys([4, 5, 6], device)
-    config = PlannerConfig(4, CEMConfig(100, 20, 8), prior_weight=0.5, skill_penalty=0.05)
+    config = planner_config(
+        horizon=4, candidates=100, elites=20, iterations=8, prior_weight=0.5, skill_penalty=0.05
+    )
     want = SkillPlanner(model, config).plan(s0, GoalCost(goals), keys)
     for compile in (False, True):
         fused = replace(config, kernel="triton", compile=compile)

@@ -1,6 +1,7 @@
-"""The layering of DESIGN.md: the library (`pipeline/`) imports nothing from the stage layer, the
-CLI or the benchmarks, and stages do not import the CLI or the benchmarks. Checked on every module's
-source (AST), including imports inside functions, so a lazy import cannot hide a dependency."""
+"""The layering of docs/development.md: the library (`pipeline/`) imports nothing from the stage
+layer, the CLI or the benchmarks, and stages do not import the CLI or the benchmarks. Checked on
+every module's source (AST), including imports inside functions, so a lazy import cannot hide a
+dependency."""
 
 import ast
 from pathlib import Path

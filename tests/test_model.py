@@ -4,14 +4,15 @@ import math
 
 import pytest
 import torch
+from factories import skill_model_config
 from torch import nn
 
 from pipeline.errors import UserError
-from pipeline.model import SkillModel, SkillModelConfig, load_model, save_model
+from pipeline.model import SkillModel, load_model, save_model
 from pipeline.training.data import WindowBatch
 from pipeline.training.losses import e_objective, m_objective, policy_log_prob, vi_objective
 
-CONFIG = SkillModelConfig(state_dim=2, action_dim=1, z_dim=2, hidden=3, tawm_shared_std=True)
+CONFIG = skill_model_config(state_dim=2, action_dim=1, z_dim=2, hidden=3, tawm_shared_std=True)
 
 
 def _normal_log_pdf(x: float, mean: float, std: float) -> float:
@@ -92,7 +93,7 @@ def test_shared_tawm_std_is_one_scalar_per_prediction():
     model = SkillModel(CONFIG)
     _, std = model.tawm(torch.randn(5, CONFIG.state_dim + CONFIG.z_dim))
     assert std.shape == (5, 2) and torch.all(std[:, 0] == std[:, 1])
-    per_dim = SkillModel(SkillModelConfig(2, 1, 2, 3, tawm_shared_std=False))
+    per_dim = SkillModel(skill_model_config(2, 1, z_dim=2, hidden=3, tawm_shared_std=False))
     _, std = per_dim.tawm(torch.randn(5, 4))
     assert not torch.all(std[:, 0] == std[:, 1])
 
@@ -122,7 +123,7 @@ def test_checkpoint_round_trip_is_bit_exact(tmp_path):
 
 def test_checkpoint_from_another_config_names_the_differing_fields(tmp_path):
     save_model(SkillModel(CONFIG), tmp_path, {})
-    other = SkillModelConfig(state_dim=2, action_dim=1, z_dim=8, hidden=3, tawm_shared_std=False)
+    other = skill_model_config(state_dim=2, action_dim=1, z_dim=8, hidden=3, tawm_shared_std=False)
     with pytest.raises(UserError, match=r"z_dim: 2 != 8.*tawm_shared_std: True != False"):
         load_model(tmp_path, expected=other)
 
@@ -136,7 +137,7 @@ def test_missing_or_corrupt_checkpoint_is_a_user_error(tmp_path):
         load_model(tmp_path)
 
 
-CENSORED = SkillModelConfig(2, 1, z_dim=2, hidden=3, action_low=(-1.0,), action_high=(1.0,))
+CENSORED = skill_model_config(2, 1, z_dim=2, hidden=3, action_low=(-1.0,), action_high=(1.0,))
 
 
 def _normal_log_sf(x: float, mean: float, std: float) -> float:
@@ -195,6 +196,6 @@ def test_censored_config_round_trips_and_clips_actions(tmp_path):
 
 def test_censored_config_checks_its_bounds():
     with pytest.raises(ValueError, match="both or neither"):
-        SkillModelConfig(2, 1, action_low=(-1.0,))
+        skill_model_config(2, 1, action_low=(-1.0,))
     with pytest.raises(ValueError, match="2 values for 1 dims"):
-        SkillModelConfig(2, 1, action_low=(-1.0, -1.0), action_high=(1.0, 1.0))
+        skill_model_config(2, 1, action_low=(-1.0, -1.0), action_high=(1.0, 1.0))

@@ -4,9 +4,10 @@ skill, per slot, and a new episode starts from zeros (paper appendix C.6)."""
 import numpy as np
 import pytest
 import torch
+from factories import planner_config, skill_model_config
 
-from pipeline.model import SkillModel, SkillModelConfig
-from pipeline.planning import CEMConfig, PlannerConfig, SkillPlanner
+from pipeline.model import SkillModel
+from pipeline.planning import SkillPlanner
 from pipeline.planning.mpc import SkillMPC
 
 L, Z = 3, 2
@@ -15,14 +16,19 @@ L, Z = 3, 2
 @pytest.fixture
 def model() -> SkillModel:
     torch.manual_seed(0)
-    m = SkillModel(SkillModelConfig(4, 2, z_dim=Z, hidden=8))
+    m = SkillModel(skill_model_config(4, 2, z_dim=Z, hidden=8))
     m.set_normalization([0.5, -0.5, 0.0, 0.0], [2.0, 2.0, 1.0, 1.0], [0.0, 0.0], [0.5, 0.5])
     return m.eval()
 
 
 def _spied_agent(model, warm_start=True):
     """An agent whose CEM records the initial mean it is started from at each call."""
-    planner = SkillPlanner(model, PlannerConfig(L, CEMConfig(8, 2, 2), warm_start=warm_start))
+    planner = SkillPlanner(
+        model,
+        planner_config(
+            horizon=L, candidates=8, elites=2, iterations=2, warm_start=warm_start, prior_weight=0.0
+        ),
+    )
     starts: list[torch.Tensor] = []
     minimize = planner.cem.minimize
 
@@ -31,7 +37,7 @@ def _spied_agent(model, warm_start=True):
         return minimize(cost_fn, mean, std, keys, step)
 
     planner.cem.minimize = spy
-    return SkillMPC(model, planner), starts
+    return SkillMPC(model, planner, sample_actions=False), starts
 
 
 def _shifted(eps: torch.Tensor) -> torch.Tensor:

@@ -4,15 +4,15 @@ the counter-based noise streams, and the compiled planner against eager."""
 import numpy as np
 import pytest
 import torch
+from factories import planner_config, skill_model_config
 
 from pipeline.errors import UserError
-from pipeline.model import SkillModel, SkillModelConfig
+from pipeline.model import SkillModel
 from pipeline.model.rollout import rollout_skills
 from pipeline.planning import (
     CEM,
     CEMConfig,
     GoalCost,
-    PlannerConfig,
     SkillPlanner,
     problem_keys,
     shift_plan,
@@ -37,7 +37,7 @@ def quadratic(centres: torch.Tensor, calls: list | None = None):
 
 
 def test_cem_finds_the_minimum_of_a_quadratic():
-    cem = CEM(CEMConfig(population=64, elites=8, iterations=40))
+    cem = CEM(CEMConfig(population=64, elites=8, iterations=40, min_std=0.0, stop_cost=None))
     mean = torch.zeros(2, 2, 3)
     result = cem.minimize(quadratic(CENTRES), mean, 2.0, problem_keys([0, 1], "cpu"))
     assert torch.allclose(result.best, CENTRES, atol=0.05)
@@ -51,7 +51,7 @@ def test_cem_finds_the_minimum_of_a_quadratic():
 def test_cem_problems_planned_together_equal_planned_apart():
     # Early stop: problem 0 starts at its optimum and stops after one iteration, problem 1 runs on.
     centres = CENTRES.clone()
-    cfg = CEMConfig(population=32, elites=6, iterations=15, stop_cost=0.05)
+    cfg = CEMConfig(population=32, elites=6, iterations=15, min_std=0.0, stop_cost=0.05)
     mean = torch.stack([centres[0], torch.zeros(2, 3)])
     std = torch.stack([torch.full((2, 3), 0.01), torch.ones(2, 3)])
     calls: list = []
@@ -74,12 +74,12 @@ def test_cem_ignores_nan_costs_and_rejects_bad_settings():
         c = x.pow(2).sum(-1)
         return torch.where(x[..., 0] > 0, torch.nan, c), ()  # NaN on half of the space
 
-    result = CEM(CEMConfig(32, 4, 10)).minimize(
+    result = CEM(CEMConfig(32, 4, 10, 0.0, None)).minimize(
         cost, torch.zeros(1, 2), 1.0, problem_keys([0], "cpu")
     )
     assert torch.isfinite(result.cost).all() and result.best[0, 0] <= 0
     with pytest.raises(UserError, match="elites"):
-        CEMConfig(population=10, elites=11)
+        CEMConfig(population=10, elites=11, iterations=1, min_std=0.0, stop_cost=None)
 
 
 def test_goal_cost_is_the_distance_of_the_nearest_predicted_state():
@@ -132,7 +132,7 @@ def test_fall_penalty_keeps_plans_from_predicted_falls():
 def model() -> SkillModel:
     """A small skill model with random weights and non-trivial normalization."""
     torch.manual_seed(0)
-    m = SkillModel(SkillModelConfig(4, 2, z_dim=3, hidden=16))
+    m = SkillModel(skill_model_config(4, 2, z_dim=3, hidden=16))
     m.set_normalization([0.5, -0.5, 0.0, 0.0], [2.0, 2.0, 1.0, 1.0], [0.0, 0.0], [0.5, 0.5])
     return m.eval()
 
@@ -159,7 +159,9 @@ def test_rollout_chains_prior_and_tawm_means(model):
 
 
 def test_batched_planning_matches_planning_each_env_alone(model):
-    planner = SkillPlanner(model, PlannerConfig(horizon=3, cem=CEMConfig(24, 6, 5)))
+    planner = SkillPlanner(
+        model, planner_config(horizon=3, candidates=24, elites=6, iterations=5, prior_weight=0.0)
+    )
     s0, goals = torch.randn(3, 4), torch.randn(3, 2)
     seeds = [11, 12, 13]
     keys = problem_keys(seeds, "cpu")
@@ -181,7 +183,9 @@ def test_the_prior_penalty_keeps_plans_near_the_prior_mean(model):
     s0, goals = torch.randn(4, 4), 5 + torch.randn(4, 2)
     plans = {}
     for weight in (0.0, 100.0):
-        config = PlannerConfig(horizon=3, cem=CEMConfig(32, 8, 5), prior_weight=weight)
+        config = planner_config(
+            horizon=3, candidates=32, elites=8, iterations=5, prior_weight=weight
+        )
         plans[weight] = SkillPlanner(model, config).plan(
             s0, GoalCost(goals), problem_keys(range(4), "cpu")
         )
@@ -195,8 +199,10 @@ def test_the_prior_penalty_keeps_plans_near_the_prior_mean(model):
 
 
 def test_mpc_warm_starts_from_the_shifted_plan_and_acts_with_the_policy(model):
-    planner = SkillPlanner(model, PlannerConfig(horizon=3, cem=CEMConfig(16, 4, 3)))
-    agent = SkillMPC(model, planner)
+    planner = SkillPlanner(
+        model, planner_config(horizon=3, candidates=16, elites=4, iterations=3, prior_weight=0.0)
+    )
+    agent = SkillMPC(model, planner, sample_actions=False)
     agent.reset(np.zeros((2, 2)), seeds=[1, 2])
     states = np.random.default_rng(0).normal(size=(2, 4))
     first = agent.replan(np.array([0, 1]), states)
@@ -257,7 +263,9 @@ def test_bfloat16_planner_nets_and_plans_stay_near_float32(model):
     keys = problem_keys(range(6), "cpu")
     costs = {}
     for dtype in ("float32", "bfloat16"):
-        config = PlannerConfig(3, CEMConfig(64, 8, 6), dtype=dtype)
+        config = planner_config(
+            horizon=3, candidates=64, elites=8, iterations=6, dtype=dtype, prior_weight=0.0
+        )
         plan = SkillPlanner(model, config).plan(s0, GoalCost(goals), keys)
         assert plan.states.dtype == torch.float32
         costs[dtype] = plan.cost
@@ -270,7 +278,9 @@ def test_compiled_planner_gives_the_eager_plans(model):
     keys = problem_keys([5, 6, 7], "cpu")
     plans = {}
     for compiled in (False, True):
-        config = PlannerConfig(3, CEMConfig(24, 6, 4), prior_weight=0.5, compile=compiled)
+        config = planner_config(
+            horizon=3, candidates=24, elites=6, iterations=4, prior_weight=0.5, compile=compiled
+        )
         plans[compiled] = SkillPlanner(model, config).plan(s0, GoalCost(goals), keys)
     for field in ("eps", "z", "states", "cost", "objective"):
         eager, fast = getattr(plans[False], field), getattr(plans[True], field)

@@ -4,10 +4,10 @@ demonstrations went, the goal itself once it is within reach, and wired into the
 import numpy as np
 import pytest
 import torch
-from factories import make_info, make_skill_episodes
+from factories import make_info, make_skill_episodes, planner_config, skill_model_config
 
-from pipeline.model import SkillModel, SkillModelConfig
-from pipeline.planning import CEMConfig, PlannerConfig, SkillPlanner
+from pipeline.model import SkillModel
+from pipeline.planning import SkillPlanner
 from pipeline.planning.mpc import SkillMPC
 from pipeline.planning.subgoals import SubgoalGraph
 from pipeline.segments import build_segments
@@ -26,7 +26,9 @@ def _u_corridor(step: float = 0.1) -> np.ndarray:
 def _graph(reach: int = 5, window: int = 5) -> SubgoalGraph:
     points = _u_corridor()
     first = np.arange(len(points) - window)
-    return SubgoalGraph.from_windows(points, first, first + window, cell=0.25, reach=reach)
+    return SubgoalGraph.from_windows(
+        points, first, first + window, cell=0.25, reach=reach, line_of_sight=False
+    )
 
 
 def test_waypoint_leads_round_the_wall_and_is_the_goal_once_within_reach():
@@ -54,7 +56,9 @@ def test_windows_with_a_jump_are_no_edges():
     hop = np.concatenate([u[:20][::-1], u[120:140]])  # down the left leg, then a jump right
     points = np.concatenate([u, hop])
     first = np.concatenate([np.arange(len(u) - 5), len(u) + np.arange(len(hop) - 5)])
-    graph = SubgoalGraph.from_windows(points, first, first + 5, cell=0.25, reach=5)
+    graph = SubgoalGraph.from_windows(
+        points, first, first + 5, cell=0.25, reach=5, line_of_sight=False
+    )
     feet = torch.tensor([[0.0, 0.0], [4.0, 0.0]])
     a, b = graph.nearest(feet)
     plain = _graph()
@@ -63,7 +67,9 @@ def test_windows_with_a_jump_are_no_edges():
     smooth = np.concatenate([u, u[:40]])  # the same windows without a jump: no change
     first = np.concatenate([np.arange(len(u) - 5), len(u) + np.arange(35)])
     assert torch.equal(
-        SubgoalGraph.from_windows(smooth, first, first + 5, cell=0.25, reach=5).hops,
+        SubgoalGraph.from_windows(
+            smooth, first, first + 5, cell=0.25, reach=5, line_of_sight=False
+        ).hops,
         _graph().hops,
     )
 
@@ -71,30 +77,32 @@ def test_windows_with_a_jump_are_no_edges():
 def test_unreachable_goal_and_single_skill_reach():
     points = np.concatenate([_u_corridor(), [[10.0, 10.0], [10.0, 10.1]]])  # an island
     first = np.arange(len(points) - 7)
-    graph = SubgoalGraph.from_windows(points, first, first + 5, cell=0.25, reach=1)
+    graph = SubgoalGraph.from_windows(
+        points, first, first + 5, cell=0.25, reach=1, line_of_sight=False
+    )
     goals = torch.tensor([[10.0, 10.0], [4.0, 0.0]])
     targets = graph.waypoints(torch.tensor([[0.0, 0.0], [0.0, 0.0]]), goals)
     torch.testing.assert_close(targets[0], goals[0])  # not connected: the goal itself
     step = torch.linalg.vector_norm(targets[1] - torch.tensor([0.0, 0.0]))
     assert 0.2 < step < 0.8  # one skill (0.5 m) up the left leg
     with pytest.raises(ValueError, match="cell"):
-        SubgoalGraph.from_windows(points, first, first + 5, cell=0.0, reach=1)
+        SubgoalGraph.from_windows(points, first, first + 5, cell=0.0, reach=1, line_of_sight=False)
 
 
 def test_from_segments_and_the_mpc_aims_at_waypoints():
     episodes = make_skill_episodes(n_episodes=8, length=60, seed=0)
     split = {"train": 0.75, "validation": 0.125, "test": 0.125}
     segments = build_segments(episodes, make_info("skills", physics_dim=0), 11, 1, split, seed=0)
-    graph = SubgoalGraph.from_segments(segments, (0, 1), cell=0.5, reach=2)
+    graph = SubgoalGraph.from_segments(segments, (0, 1), cell=0.5, reach=2, line_of_sight=False)
     xy = segments.states[:, :2]
     assert (graph.nodes.numpy() >= xy.min(0) - 1e-5).all()
     assert (graph.nodes.numpy() <= xy.max(0) + 1e-5).all()
 
     torch.manual_seed(0)
     sd, ad = segments.info.state_dim, segments.info.action_dim
-    model = SkillModel(SkillModelConfig(sd, ad, z_dim=4, hidden=16)).eval()
-    agent = SkillMPC(model, SkillPlanner(model, PlannerConfig(2, CEMConfig(16, 4, 2))),
-                     goal_dims=(0, 1), subgoals=graph)  # fmt: skip
+    model = SkillModel(skill_model_config(sd, ad, z_dim=4, hidden=16)).eval()
+    planner = planner_config(horizon=2, candidates=16, elites=4, iterations=2, prior_weight=0.0)
+    agent = SkillMPC(model, SkillPlanner(model, planner), False, goal_dims=(0, 1), subgoals=graph)
     far = graph.nodes[graph.hops[0].argmax()].numpy()
     agent.reset(far[None].astype(np.float64), seeds=[0])
     start = np.zeros((1, sd))
@@ -115,11 +123,13 @@ def test_episodes_with_subgoals_record_one_waypoint_per_replan():
     points = np.stack([np.linspace(-2.5, 0.5, 61), np.full(61, 2.5)], axis=1)
     points = np.concatenate([points, points[::-1]])
     first = np.arange(len(points) - 10)
-    graph = SubgoalGraph.from_windows(points, first, first + 10, cell=0.25, reach=1)
+    graph = SubgoalGraph.from_windows(
+        points, first, first + 10, cell=0.25, reach=1, line_of_sight=False
+    )
     torch.manual_seed(0)
-    model = SkillModel(SkillModelConfig(4, 2, z_dim=4, hidden=16)).eval()
-    agent = SkillMPC(model, SkillPlanner(model, PlannerConfig(2, CEMConfig(16, 4, 2))),
-                     goal_dims=(0, 1), subgoals=graph)  # fmt: skip
+    model = SkillModel(skill_model_config(4, 2, z_dim=4, hidden=16)).eval()
+    planner = planner_config(horizon=2, candidates=16, elites=4, iterations=2, prior_weight=0.0)
+    agent = SkillMPC(model, SkillPlanner(model, planner), False, goal_dims=(0, 1), subgoals=graph)
     spec = EpisodeSpec("goal", 0, np.array([-2.5, 2.5, 0.0, 0.0]), np.array([0.5, 2.5]), 3)
     (result,), _ = run_episodes(
         agent, BatchSim(PointMazeSpec.create("PointMaze_Medium-v3"), 1), [spec], RunConfig(20, 5)

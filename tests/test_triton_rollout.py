@@ -9,9 +9,10 @@ import dataclasses
 
 import pytest
 import torch
+from factories import planner_config, skill_model_config
 
-from pipeline.model import SkillModel, SkillModelConfig
-from pipeline.planning import CEMConfig, GoalCost, PlannerConfig, SkillPlanner, problem_keys
+from pipeline.model import SkillModel
+from pipeline.planning import GoalCost, SkillPlanner, problem_keys
 from pipeline.planning.fused import PlannerNets
 from pipeline.planning.triton_rollout import TritonNets
 
@@ -21,7 +22,7 @@ CLOSE = {"rtol": 1e-5, "atol": 1e-5}
 
 def _model(sd: int, z: int, hidden: int) -> SkillModel:
     torch.manual_seed(sd + z + hidden)
-    model = SkillModel(SkillModelConfig(sd, 2, z_dim=z, hidden=hidden))
+    model = SkillModel(skill_model_config(sd, 2, z_dim=z, hidden=hidden))
     for p in model.parameters():  # larger than the default init: states move well off s_0
         p.data.mul_(1.5)
     g = torch.Generator().manual_seed(1)
@@ -39,7 +40,7 @@ def _model(sd: int, z: int, hidden: int) -> SkillModel:
 )
 def test_kernel_equals_the_torch_rollout_and_goal_cost(sd, z, hidden, dims, penalty):
     model = _model(sd, z, hidden)
-    planner = SkillPlanner(model, PlannerConfig(4))
+    planner = SkillPlanner(model, planner_config(horizon=4))  # its rollout only
     g = torch.Generator().manual_seed(2)
     b, k, n = 3, 21, 4  # 63 rows: the last program's tile is part padding
     eps = torch.randn(b, k, n, z, generator=g).to(DEVICE)
@@ -63,7 +64,9 @@ def test_planner_on_the_kernel_gives_the_torch_plans():
     g = torch.Generator().manual_seed(3)
     s0, goals = torch.randn(2, 4, generator=g).to(DEVICE), torch.randn(2, 2, generator=g)
     keys = problem_keys([7, 8], DEVICE)
-    config = PlannerConfig(3, CEMConfig(16, 4, 3), prior_weight=0.5, skill_penalty=0.1)
+    config = planner_config(
+        horizon=3, candidates=16, elites=4, iterations=3, prior_weight=0.5, skill_penalty=0.1
+    )
     fused = SkillPlanner(model, dataclasses.replace(config, kernel="triton"))
     want = SkillPlanner(model, config).plan(s0, GoalCost(goals.to(DEVICE)), keys)
     got = fused.plan(s0, GoalCost(goals.to(DEVICE)), keys)
@@ -74,4 +77,4 @@ def test_planner_on_the_kernel_gives_the_torch_plans():
     falls = GoalCost(goals.to(DEVICE), fall_penalty=5.0, fallen=lambda s: s[..., 2] > 0)
     assert fused._fused(GoalCost(goals)) and not fused._fused(falls)
     with pytest.raises(ValueError, match="kernel must be"):
-        PlannerConfig(kernel="cuda")
+        dataclasses.replace(planner_config(), kernel="cuda")

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
-from factories import make_info, make_skill_episodes
+from factories import make_info, make_skill_episodes, skill_model_config
 from typer.testing import CliRunner
 
 from cli import app
@@ -29,7 +29,7 @@ from pipeline.evaluation.open_loop_metrics import (
     points_in_walls,
     within_sigma,
 )
-from pipeline.model import SkillModel, SkillModelConfig
+from pipeline.model import SkillModel
 from pipeline.model.checkpoint import load_dynamics, save_dynamics
 from pipeline.model.rollout import rollout_skills
 from pipeline.segments import build_segments, load_segments, save_segments
@@ -176,7 +176,7 @@ def test_wall_crossing_on_hand_made_paths(layout):
 
 def _tiny_model(state_dim=4, seed=0):
     torch.manual_seed(seed)
-    model = SkillModel(SkillModelConfig(state_dim, 2, z_dim=3, hidden=16)).eval()
+    model = SkillModel(skill_model_config(state_dim, 2, z_dim=3, hidden=16)).eval()
     model.set_normalization(np.zeros(4), np.ones(4) * 2, np.zeros(2), np.ones(2))
     return model
 
@@ -271,6 +271,8 @@ def test_validate_writes_report_plots_and_recording(workdir):
             assert 0 <= m[key] <= 1
         assert m["tawm_within_1sigma"] <= m["tawm_within_2sigma"]
         assert set(m["tawm_within_1sigma_per_dim"]) == {"x", "y", "vx", "vy"}
+        assert ("replay_error_mean" in m) == (mode == "posterior")  # only recordings replay
+    assert math.isfinite(report["posterior"]["skills_2"]["replay_error_median"])
     rows = (data / "reports/validate/error_vs_horizon.csv").read_text().splitlines()
     assert rows[0].startswith("skills,steps,tawm_prior,single_step_prior") and len(rows) == 3
     ends = (data / "reports/validate/end_positions.csv").read_text().splitlines()
@@ -337,3 +339,27 @@ def test_dataset_without_test_split_or_with_bad_states_is_a_one_line_error(workd
     segments.physics[:, 2] += 0.3  # every y off by 0.3 m from its observation
     save_segments(segments, tmp_path / "data/segments/tiny")
     assert "cannot be restored" in _one_line_error(runner.invoke(app, ["validate", *common]))
+
+
+def test_skill_fidelity_measures_the_replay_against_the_recording(layout):
+    """Posterior mode: the executed end vs the recorded end the skill came from, beside the
+    TAWM's and no model's distance to that recorded end (hand-made states, known answers)."""
+    from pipeline.evaluation.open_loop import ModeResult
+    from pipeline.evaluation.open_loop_metrics import horizon_metrics
+
+    b, h = 3, 4
+    real = np.zeros((b, h + 1, 4))
+    real[:, -1, 0] = 1.0  # every execution ends 1 m along x
+    recorded = real.copy()
+    recorded[:, -1, 1] = 2.0  # ... and the recording 2 m along y from there
+    tawm = recorded[:, None, -1].copy()  # the TAWM predicts the recorded end exactly
+    mode = ModeResult(real, np.zeros((b, h, 2)), tawm, tawm, np.ones_like(tawm), real, recorded)
+    norm = (np.zeros(4), np.ones(4))
+    m = horizon_metrics(mode, 1, h, [0, 1], ["x", "y", "vx", "vy"], norm, np.full(b, 99), layout)
+    assert m["replay_error_mean"] == pytest.approx(2.0)
+    assert m["tawm_recorded_error_mean"] == pytest.approx(0.0)
+    assert m["no_model_recorded_error_median"] == pytest.approx(np.hypot(1.0, 2.0))
+    mode.recorded = None
+    assert "replay_error_mean" not in horizon_metrics(
+        mode, 1, h, [0, 1], ["x", "y", "vx", "vy"], norm, np.full(b, 99), layout
+    )

@@ -12,9 +12,10 @@ import copy
 
 import pytest
 import torch
+from factories import skill_model_config, train_updater
 from torch.distributions import Normal
 
-from pipeline.model import SkillModel, SkillModelConfig
+from pipeline.model import SkillModel
 from pipeline.training.data import WindowBatch
 from pipeline.training.losses import (
     e_objective,
@@ -25,7 +26,6 @@ from pipeline.training.losses import (
     vi_loss,
     vi_objective,
 )
-from pipeline.training.updaters import EMUpdater, VIUpdater
 
 B, T, SD, AD, ZD = 5, 4, 3, 2, 4
 TOL = {"rtol": 1e-10, "atol": 1e-10}
@@ -36,7 +36,7 @@ def _model(seed: int = 0, z_dim: int = ZD) -> SkillModel:
     std heads' softplus would then be nearly the same everywhere) and a non-trivial
     normalization, which the losses must not apply again to the already normalized batch."""
     torch.manual_seed(seed)
-    model = SkillModel(SkillModelConfig(SD, AD, z_dim=z_dim, hidden=8, tawm_shared_std=False))
+    model = SkillModel(skill_model_config(SD, AD, z_dim=z_dim, hidden=8, tawm_shared_std=False))
     with torch.no_grad():
         for p in model.parameters():
             p.copy_(0.5 * torch.randn_like(p))
@@ -211,7 +211,7 @@ def test_em_step_with_the_closed_form_kl_differentiates_it_in_phi():
     model, batch = _model(), _batch()
     ref = copy.deepcopy(model)
     torch.manual_seed(3)
-    EMUpdater(model, lr_e=1e-2, lr_m=1e-2, e_kl="closed_form").e_step(batch)
+    train_updater(model, lr_e=1e-2, lr_m=1e-2, e_kl="closed_form", e_prior="current").e_step(batch)
     z_e = _rsample_z(ref, batch, seed=3)
     want = _grads(_eq15_closed_form(ref, batch, z_e), list(ref.posterior.parameters()))
     _assert_grads_equal(list(model.posterior.parameters()), want, "E-step, closed-form KL")
@@ -224,7 +224,7 @@ def test_em_step_differentiates_eq15_in_phi_through_z_then_eq16_in_theta_psi_ome
     parameters as they were before any update."""
     model, batch = _model(), _batch()
     before = copy.deepcopy(model)
-    updater = EMUpdater(model, lr_e=1e-2, lr_m=1e-2)
+    updater = train_updater(model, lr_e=1e-2, lr_m=1e-2, e_prior="current")
     torch.manual_seed(3)
     updater.step(batch)
 
@@ -253,7 +253,7 @@ def test_vi_step_differentiates_eq1_in_all_parameters_jointly():
     ref = copy.deepcopy(model)
     want = _grads(_eq1(ref, batch, _rsample_z(ref, batch, seed=6)), list(ref.parameters()))
     torch.manual_seed(6)
-    VIUpdater(model, lr=1e-2).step(batch)
+    train_updater(model, method="vi", lr_m=1e-2).step(batch)
     _assert_grads_equal(list(model.parameters()), want, "VI step")
 
 

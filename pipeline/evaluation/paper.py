@@ -1,4 +1,4 @@
-"""The paper's numbers that `oposm results` puts beside ours (../shared/REFERENCES.md has sources).
+"""The paper's numbers that `oposm results` puts beside ours (docs/references.md has sources).
 
 Success rates are fractions; `None` where the paper reports nothing. Table 4 (random goals) gives
 mean ± the spread it printed; figure 5 is read off the paper code's logged values (antmaze-large,

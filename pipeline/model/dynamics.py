@@ -27,7 +27,8 @@ from pipeline.model.skill_model import diag_normal
 
 @dataclass(frozen=True)
 class DynamicsConfig:
-    """Everything needed to rebuild a `DynamicsModel`.
+    """Everything needed to rebuild a `DynamicsModel`. No defaults: `dynamics`
+    (`pipeline.config.DynamicsParams`) holds them (`pipeline.model.settings.dynamics_config`).
 
     Attributes:
         state_dim: Size of a state vector.
@@ -38,8 +39,8 @@ class DynamicsConfig:
 
     state_dim: int
     action_dim: int
-    hidden: int = 128
-    min_std: float = 1e-4
+    hidden: int
+    min_std: float
 
 
 class DynamicsModel(nn.Module):

@@ -24,7 +24,8 @@ from pipeline.model.skill_model import diag_normal
 
 @dataclass(frozen=True)
 class PolicyConfig:
-    """Everything needed to rebuild a `GaussianPolicy`.
+    """Everything needed to rebuild a `GaussianPolicy`. No defaults: `bc` and `gcbc`
+    (`pipeline.config.PolicyParams`) hold them (`pipeline.model.settings.policy_config`).
 
     Attributes:
         state_dim: Size of a state vector.
@@ -37,10 +38,10 @@ class PolicyConfig:
 
     state_dim: int
     action_dim: int
-    goal_dims: tuple[int, ...] = ()
-    hidden: int = 128
-    min_std: float = 1e-4
-    learned_std: bool = True
+    goal_dims: tuple[int, ...]
+    hidden: int
+    min_std: float
+    learned_std: bool
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "goal_dims", tuple(int(d) for d in self.goal_dims))

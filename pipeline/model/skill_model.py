@@ -20,6 +20,10 @@ from pipeline.model.networks import GaussianHead, GaussianMLP
 class SkillModelConfig:
     """Everything needed to rebuild a `SkillModel` (stored as the checkpoint's config.json).
 
+    The hyperparameters have no defaults: `train` (`pipeline.config.TrainParams`) holds them and
+    `pipeline.model.settings.skill_model_config` builds this from it. The last three fields
+    default to what a checkpoint written before they existed holds (no bounds, ReLU policy).
+
     Attributes:
         state_dim: Size of a state vector.
         action_dim: Size of an action vector.
@@ -40,10 +44,10 @@ class SkillModelConfig:
 
     state_dim: int
     action_dim: int
-    z_dim: int = 256
-    hidden: int = 256
-    tawm_shared_std: bool = True
-    min_std: float = 1e-4
+    z_dim: int
+    hidden: int
+    tawm_shared_std: bool
+    min_std: float
     action_low: tuple[float, ...] | None = None
     action_high: tuple[float, ...] | None = None
     policy_layer_norm: bool = False

@@ -34,7 +34,8 @@ StepFn = Callable[["CEMState", CostFn, torch.Tensor], "CEMState"]
 
 @dataclass(frozen=True)
 class CEMConfig:
-    """CEM settings (paper table 14 names in brackets).
+    """CEM settings (paper table 14 names in brackets). No defaults: the params models
+    (`pipeline.config`) hold them, and `pipeline.planning.settings` builds this from them.
 
     Attributes:
         population: Candidates sampled per problem and iteration [K].
@@ -44,11 +45,11 @@ class CEMConfig:
         stop_cost: Stop a problem once its best cost is below this; None: run all iterations.
     """
 
-    population: int = 100
-    elites: int = 50
-    iterations: int = 100
-    min_std: float = 0.0
-    stop_cost: float | None = None
+    population: int
+    elites: int
+    iterations: int
+    min_std: float
+    stop_cost: float | None
 
     def __post_init__(self) -> None:
         if self.population < 1 or self.iterations < 1:

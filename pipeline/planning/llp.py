@@ -18,7 +18,7 @@ warm start, CEM's final mean executed (not its best sample).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -33,7 +33,9 @@ from pipeline.planning.skills import StateCost
 
 @dataclass(frozen=True)
 class LLPConfig:
-    """Low-level planner settings (the paper code's names in brackets).
+    """Low-level planner settings (the paper code's names in brackets). No defaults: `deploy.llp`
+    (`pipeline.config.LLPParams`) holds them, and `pipeline.planning.settings.llp_config` builds
+    this from it.
 
     Attributes:
         horizon: Actions per plan [action_seq_len].
@@ -46,13 +48,13 @@ class LLPConfig:
         warm_start: Start each replan from the previous plan shifted by `execute` actions.
     """
 
-    horizon: int = 20
-    execute: int = 5
-    cem: CEMConfig = field(default_factory=lambda: CEMConfig(100, 20, 5))
-    init_std: float = 1.0
-    l2_penalty: float = 0.01
-    plan_from: str = "mean"
-    warm_start: bool = False
+    horizon: int
+    execute: int
+    cem: CEMConfig
+    init_std: float
+    l2_penalty: float
+    plan_from: str
+    warm_start: bool
 
     def __post_init__(self) -> None:
         if not 1 <= self.execute <= self.horizon:

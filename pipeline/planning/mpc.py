@@ -28,7 +28,7 @@ class SkillMPC:
     Args:
         model: The skill model (prior, TAWM, low-level policy).
         planner: The batched skill planner.
-        sample_actions: Sample a ~ pi(a | s, z) instead of taking its mean.
+        sample_actions: Sample a ~ pi(a | s, z) instead of its mean (`deploy.sample_actions`).
         goal_dims: State dimensions the goal refers to (the environment spec's `goal_dims`);
             None: the first G (`GoalCost`'s default).
         subgoals: Plan to its waypoints instead of the goal when the goal is far
@@ -43,7 +43,7 @@ class SkillMPC:
         self,
         model: SkillModel,
         planner: SkillPlanner,
-        sample_actions: bool = False,
+        sample_actions: bool,
         goal_dims: tuple[int, ...] | None = None,
         subgoals: SubgoalGraph | None = None,
         fallen: Callable[[torch.Tensor], torch.Tensor] | None = None,

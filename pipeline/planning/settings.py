@@ -1,5 +1,10 @@
-"""`deploy.planner` and `deploy.llp` params -> the planners' configs (shared by the deploy stage
-and the planning benchmark, which must not need the stage's recording dependencies)."""
+"""`deploy.planner` and `deploy.llp` params -> the planners' configs (shared by the deploy stage,
+the planning benchmark and the tests, which must not need the stage's recording dependencies).
+
+The planners' configs have no defaults of their own: every value comes from the params models
+(`pipeline.config`), the one source of defaults (`planner_config(PlannerParams())`: the
+pipeline's planner).
+"""
 
 from __future__ import annotations
 
@@ -9,11 +14,16 @@ from pipeline.planning.llp import LLPConfig
 from pipeline.planning.skills import PlannerConfig
 
 
+def cem_config(p: PlannerParams | LLPParams) -> CEMConfig:
+    """The CEM settings of `deploy.planner` or `deploy.llp`."""
+    return CEMConfig(p.candidates, p.elites, p.iterations, p.min_std, p.stop_cost)
+
+
 def planner_config(p: PlannerParams) -> PlannerConfig:
     """`deploy.planner` params -> the skill planner's config."""
     return PlannerConfig(
         horizon=p.horizon,
-        cem=CEMConfig(p.candidates, p.elites, p.iterations, p.min_std, p.stop_cost),
+        cem=cem_config(p),
         init_std=p.init_std,
         prior_weight=p.prior_weight,
         skill_penalty=p.skill_penalty,
@@ -30,7 +40,7 @@ def llp_config(p: LLPParams) -> LLPConfig:
     return LLPConfig(
         horizon=p.horizon,
         execute=p.execute,
-        cem=CEMConfig(p.candidates, p.elites, p.iterations, p.min_std, p.stop_cost),
+        cem=cem_config(p),
         init_std=p.init_std,
         l2_penalty=p.l2_penalty,
         plan_from=p.plan_from,

@@ -20,13 +20,13 @@ Optionally the objective adds `prior_weight * mean(eps^2)`, the whitened skills'
 up to constants (MAP-style planning). The paper plans on the task cost alone (§3); with a small,
 briefly trained TAWM (this repository's CPU defaults) CEM otherwise finds unlikely skills whose
 predicted end states are wrong (e.g. through walls), and the penalty keeps plans where the model
-was trained (measured: `deploy.planner.prior_weight` in the README).
+was trained (measured: `deploy.planner.prior_weight` in CHANGELOG.md).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import torch
@@ -45,7 +45,9 @@ StateCost = Callable[[torch.Tensor], torch.Tensor]
 
 @dataclass(frozen=True)
 class PlannerConfig:
-    """Skill planner settings (paper table 14: L = 10, K = 100, N_keep = 50, N_iters = 100).
+    """Skill planner settings (paper table 14: L = 10, K = 100, N_keep = 50, N_iters = 100). No
+    defaults: `deploy.planner` (`pipeline.config.PlannerParams`) holds them, and
+    `pipeline.planning.settings.planner_config` builds this from it.
 
     Attributes:
         horizon: Skills per plan [L].
@@ -67,16 +69,16 @@ class PlannerConfig:
             fall test (`pipeline.planning.triton_rollout`; GPU; others stay on "torch").
     """
 
-    horizon: int = 10
-    cem: CEMConfig = field(default_factory=CEMConfig)
-    init_std: float = 1.0
-    prior_weight: float = 0.0
-    skill_penalty: float = 0.0
-    fall_penalty: float = 0.0
-    warm_start: bool = True
-    compile: bool = False
-    dtype: str = "float32"
-    kernel: str = "torch"
+    horizon: int
+    cem: CEMConfig
+    init_std: float
+    prior_weight: float
+    skill_penalty: float
+    fall_penalty: float
+    warm_start: bool
+    compile: bool
+    dtype: str
+    kernel: str
 
     def __post_init__(self) -> None:
         if self.kernel not in ("torch", "triton"):

@@ -82,7 +82,8 @@ class SubgoalGraph:
         cell: float,
         reach: int,
         device: torch.device | str = "cpu",
-        line_of_sight: bool = False,
+        *,
+        line_of_sight: bool,
     ) -> SubgoalGraph:
         """Graph of the positions `points [N, G]` the data visits (in order, episode after
         episode) and its windows, each from point `first[w]` to point `last[w]` (`[W]` indices
@@ -115,7 +116,8 @@ class SubgoalGraph:
         cell: float,
         reach: int,
         device: torch.device | str = "cpu",
-        line_of_sight: bool = False,
+        *,
+        line_of_sight: bool,
     ) -> SubgoalGraph:
         """Graph of the train split's states and windows (positions: state dimensions `dims`)."""
         offsets = segments.episode_offsets
@@ -128,7 +130,9 @@ class SubgoalGraph:
         starts = segments.starts["train"]
         points = segments.states[steps][:, list(dims)].astype(np.float64)
         first, last = where[starts], where[starts + segments.window - 1]
-        return cls.from_windows(points, first, last, cell, reach, device, line_of_sight)
+        return cls.from_windows(
+            points, first, last, cell, reach, device, line_of_sight=line_of_sight
+        )
 
     def nearest(self, positions: torch.Tensor) -> torch.Tensor:
         """`[B]` index of the node nearest each of `positions [B, G]`."""

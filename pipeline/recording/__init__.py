@@ -2,7 +2,8 @@
 
 A dataset file holds a `DatasetInfo` (metadata `oposm.dataset`), the steps of all episodes on the
 topic `/demo/step` (log time = simulated time) and the episode lengths (metadata `oposm.episodes`).
-Any MCAP tool can decode it: the protobuf schema is embedded. See DESIGN.md, "Contracts → MCAP".
+Any MCAP tool can decode it: the protobuf schema is embedded. See docs/development.md, "Contracts",
+and docs/data.md, "The MCAP file".
 """
 
 from pipeline.recording.reader import iter_episodes, read_episodes, read_info

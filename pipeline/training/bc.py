@@ -21,7 +21,8 @@ import torch
 
 from pipeline.config import GCBCParams, PolicyParams
 from pipeline.errors import UserError
-from pipeline.model.policy import GaussianPolicy, PolicyConfig
+from pipeline.model.policy import GaussianPolicy
+from pipeline.model.settings import policy_config
 from pipeline.segments import Segments
 from pipeline.training.dynamics import transition_index
 
@@ -97,10 +98,7 @@ def fit_policy(
         val_idx = np.sort(rng.choice(val_idx, cfg.val_transitions, replace=False))
     torch.manual_seed(cfg.seed)
     info, st = segments.info, segments.stats
-    config = PolicyConfig(
-        info.state_dim, info.action_dim, goal_dims, cfg.hidden, cfg.min_std, cfg.learned_std
-    )
-    policy = GaussianPolicy(config)
+    policy = GaussianPolicy(policy_config(cfg, info.state_dim, info.action_dim, goal_dims))
     normalize, keep = True, "best"
     if isinstance(cfg, GCBCParams):
         normalize, keep = cfg.normalize, cfg.keep

@@ -13,7 +13,8 @@ import torch
 
 from pipeline.config import DynamicsParams
 from pipeline.errors import UserError
-from pipeline.model.dynamics import DynamicsConfig, DynamicsModel
+from pipeline.model.dynamics import DynamicsModel
+from pipeline.model.settings import dynamics_config
 from pipeline.segments import Segments
 
 log = logging.getLogger(__name__)
@@ -81,7 +82,7 @@ def fit_dynamics(
         val_idx = np.sort(rng.choice(val_idx, cfg.val_transitions, replace=False))
     torch.manual_seed(cfg.seed)
     info = segments.info
-    model = DynamicsModel(DynamicsConfig(info.state_dim, info.action_dim, cfg.hidden, cfg.min_std))
+    model = DynamicsModel(dynamics_config(cfg, info.state_dim, info.action_dim))
     model.set_normalization(normalization(segments, train_idx))
     model.to(device)
     train, val = _transitions(segments, train_idx, device), _transitions(segments, val_idx, device)

@@ -43,12 +43,13 @@ class DivergenceCheck:
     come back; a stable one stays within a few tenths of its best). `margin` None: no check.
 
     A diverged run is logged as such and recorded (`Progress.diverged_step`); it goes on to its
-    budget, and its best checkpoint (from before the divergence) is what gets published.
+    budget, and its best checkpoint (from before the divergence) is what gets published. No
+    defaults: `train.select`, `train.divergence_margin` and `train.divergence_evals` hold them.
     """
 
-    criterion: str = "st_nll_prior"
-    margin: float | None = 1.0
-    evals: int = 3
+    criterion: str
+    margin: float | None
+    evals: int
 
     def update(self, progress: Progress, value: float) -> bool:
         """Count `value` (the newest validation) against the best; True when this validation
@@ -144,7 +145,7 @@ class Trainer:
         self.budget = budget
         self.callbacks = callbacks
         self.progress_bar = progress_bar
-        self.divergence = divergence or DivergenceCheck(margin=None)
+        self.divergence = divergence  # None: no check
 
     def _out_of_time(self, progress: Progress, started: float, resumed_elapsed: float) -> bool:
         progress.elapsed_s = resumed_elapsed + time.monotonic() - started
@@ -159,7 +160,7 @@ class Trainer:
         metrics["time/elapsed_s"] = progress.elapsed_s  # for error-vs-wall-time plots
         self.callbacks.log(progress.step, metrics)
         check = self.divergence
-        if check.update(progress, metrics[f"val/{check.criterion}"]):
+        if check is not None and check.update(progress, metrics[f"val/{check.criterion}"]):
             step, best = progress.best_of(check.criterion)
             log.warning(
                 "training diverged: validation %s has been more than %g above its best (%.3f at "

@@ -180,19 +180,21 @@ class EMUpdater:
     """The paper's incremental EM (§2.1, C.5): per batch one Adam step on phi (eq. 15, its KL to
     the prior `e_kl`: sampled or closed_form, `losses.e_step_loss`), then one Adam step on
     theta, psi, omega (eq. 16). With `prior_ema` the E-step's prior is an `EMAPrior` of that
-    rate (the paper: the current prior)."""
+    rate (the paper: the current prior, `prior_ema` None). The settings have no defaults: `train`
+    (`pipeline.config.TrainParams`) holds them and `updater_for` passes them."""
 
     def __init__(
         self,
         model: SkillModel,
         lr_e: float,
         lr_m: float,
-        grad_clip: float | None = None,
+        *,
+        grad_clip: float | None,
+        compile: bool,
+        dtype: str,
+        e_kl: str,
+        prior_ema: float | None,
         reduce_grads: GradReducer = no_reduce,
-        compile: bool = False,
-        dtype: str = "float32",
-        e_kl: str = "sampled",
-        prior_ema: float | None = None,
     ):
         self.model = model
         e_params = list(model.posterior.parameters())
@@ -232,16 +234,18 @@ class EMUpdater:
 
 
 class VIUpdater:
-    """Naive VI (eq. 1): one Adam step on all parameters jointly, maximizing the ELBO."""
+    """Naive VI (eq. 1): one Adam step on all parameters jointly, maximizing the ELBO. No
+    defaults for the settings, as `EMUpdater`."""
 
     def __init__(
         self,
         model: SkillModel,
         lr: float,
-        grad_clip: float | None = None,
+        *,
+        grad_clip: float | None,
+        compile: bool,
+        dtype: str,
         reduce_grads: GradReducer = no_reduce,
-        compile: bool = False,
-        dtype: str = "float32",
     ):
         self.model = model
         params = [p for p in model.parameters() if p.requires_grad]
@@ -265,21 +269,26 @@ def make_updater(
     model: SkillModel,
     lr_e: float,
     lr_m: float,
+    *,
     grad_clip: float | None,
+    compile: bool,
+    dtype: str,
+    e_kl: str,
+    prior_ema: float | None,
     reduce_grads: GradReducer = no_reduce,
-    compile: bool = False,
-    dtype: str = "float32",
-    e_kl: str = "sampled",
-    prior_ema: float | None = None,
 ) -> EMUpdater | VIUpdater:
     """`em` (the paper's algorithm; its E-step's KL `e_kl`, its prior an EMA of rate
     `prior_ema` or the current one) or `vi` (the naive ablation; uses `lr_m`), multiplying in
     `dtype` (float32, or bfloat16 under autocast)."""
+    common = {
+        "grad_clip": grad_clip,
+        "compile": compile,
+        "dtype": dtype,
+        "reduce_grads": reduce_grads,
+    }
     if method == "em":
-        return EMUpdater(
-            model, lr_e, lr_m, grad_clip, reduce_grads, compile, dtype, e_kl, prior_ema
-        )
-    return VIUpdater(model, lr_m, grad_clip, reduce_grads, compile, dtype)
+        return EMUpdater(model, lr_e, lr_m, e_kl=e_kl, prior_ema=prior_ema, **common)
+    return VIUpdater(model, lr_m, **common)
 
 
 def updater_for(
@@ -288,6 +297,7 @@ def updater_for(
     """`make_updater` with every setting from the train params (what `oposm train` and
     `oposm bench train` run)."""
     return make_updater(
-        cfg.method, model, cfg.lr_e, cfg.lr_m, cfg.grad_clip, reduce_grads, cfg.compile,
-        cfg.dtype, cfg.e_kl, cfg.prior_ema if cfg.e_prior == "ema" else None,
+        cfg.method, model, cfg.lr_e, cfg.lr_m, grad_clip=cfg.grad_clip, compile=cfg.compile,
+        dtype=cfg.dtype, e_kl=cfg.e_kl, prior_ema=cfg.prior_ema if cfg.e_prior == "ema" else None,
+        reduce_grads=reduce_grads,
     )  # fmt: skip
