@@ -1,4 +1,4 @@
-"""results/antmaze.md + results/antmaze.json: OPOSM on OGBench's ant mazes (issue 19 §3).
+"""results/antmaze.md + results/antmaze.json: OPOSM on OGBench's ant mazes.
 
 Collects what the per-maze runs wrote (one data root per maze, e.g. `--data data/ant/medium`):
 the data (ingest, segment), training, validation (TAWM vs single-step open loop) and deployment on
@@ -19,7 +19,7 @@ from pathlib import Path
 
 from pipeline.errors import UserError
 from pipeline.io import atomic_path, write_json
-from stages.results_common import read
+from stages.results_common import code_version, read
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -77,7 +77,33 @@ def collect(maze: str, root: Path) -> dict:
     others = [p for p in runs if p not in mass]
     out["deploy"] = _merged_deploys([reports / "deploy" / "report.json"] + others)
     out["mass_sweep"] = _mass_sweep(mass)
+    out["random_goal"] = _random_goal_runs(others)
     return out
+
+
+def _random_goal_runs(paths: list[Path]) -> dict:
+    """Runs on training-data goals (`deploy.tasks: [random_goal]`, the development metric),
+    by run name: each agent's success with its interval, episodes and final distance."""
+    runs: dict = {}
+    for path in paths:
+        r = read(path)
+        if not r or r.get("tasks") != ["random_goal"]:
+            continue
+        runs[path.parents[2].name] = {
+            agent: {
+                k: by_task["random_goal"].get(k)
+                for k in (
+                    "episodes",
+                    "success_rate",
+                    "success_ci95_low",
+                    "success_ci95_high",
+                    "final_distance_mean",
+                    "fallen",
+                )
+            }
+            for agent, by_task in r["by_agent"].items()
+        }
+    return runs
 
 
 def _mass_sweep(paths: list[Path]) -> dict | None:
@@ -209,10 +235,10 @@ def render(results: dict) -> str:
     lines = [
         "# OGBench ant mazes: OPOSM beside OGBench's published table",
         "",
-        "Issue 19 §3. Produced by `uv run python scripts/antmaze_report.py` from the runs listed "
+        "Produced by `uv run python scripts/antmaze_report.py` from the runs listed "
         "per maze (their commands below); every setting is in `antmaze.json`.",
         "",
-        f"Machine: {results['machine']}.",
+        f"Machine: {results['machine']}. Commit: {results.get('commit') or 'unknown'}.",
         "",
         "## Protocol",
         "",
@@ -272,6 +298,35 @@ def render(results: dict) -> str:
                 "error of the predicted end; paper figure 4 is antmaze-large):",
                 *[f"  - {p}" for p in parts],
             ]
+            replay = [
+                f"{k.split('_')[1]} skill(s) ({v['steps']} steps): executed "
+                f"{v['replay_error_mean']:.2f} m, TAWM {v['tawm_recorded_error_mean']:.2f} m, "
+                f"no model {v['no_model_recorded_error_mean']:.2f} m"
+                for k, v in validate.get("posterior", {}).items()
+                if "replay_error_mean" in v
+            ]
+            if replay:
+                lines += [
+                    "- Skill fidelity: the posterior's skills of held-out recorded windows, "
+                    "executed by the policy in MuJoCo from the recorded start (mean x-y distance "
+                    "to the recorded end; a policy that replays its skills lands well below "
+                    "no model):",
+                    *[f"  - {p}" for p in replay],
+                ]
+        for run, agents in r.get("random_goal", {}).items():
+            for agent, v in agents.items():
+                rate = _pct(v["success_rate"], v["success_ci95_low"], v["success_ci95_high"])
+                lines.append(
+                    f"- Goals from the training data (`random_goal`, run `{run}`, the "
+                    f"development metric): {agent} {rate} % "
+                    f"of {v['episodes']} episodes; mean final distance "
+                    + (
+                        "–"
+                        if v["final_distance_mean"] is None
+                        else f"{v['final_distance_mean']:.2f}"
+                    )
+                    + f" m; fell in {v['fallen'] if v.get('fallen') is not None else '–'}."
+                )
         lines.append("")
         if deploy:
             lines += [
@@ -381,7 +436,7 @@ def main() -> None:
             "notes": run.get("notes", []),
         }
     results = {
-        "what": "OPOSM on OGBench's ant mazes (issue 19 §3), beside OGBench's published table",
+        "what": "OPOSM on OGBench's ant mazes, beside OGBench's published table",
         "machine": args.machine
         or (previous or {}).get("machine")
         or f"{platform.machine()} CPU, {os.cpu_count()} cores",
@@ -390,6 +445,7 @@ def main() -> None:
         "published_ogbench": PUBLISHED,
         "paper": PAPER,
         "verdicts": {m: v for m, r in mazes.items() if (v := verdict(m, r["deploy"]))},
+        "commit": code_version(ROOT),
     }
     write_json(args.out / "antmaze.json", results)
     with atomic_path(args.out / "antmaze.md") as tmp:

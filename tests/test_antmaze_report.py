@@ -122,7 +122,9 @@ def test_report_reads_a_runs_reports_and_writes_markdown_and_json(tmp_path, monk
     assert "(run rg)" not in text  # a run on other tasks stays out of OGBench's table
     assert "4 episodes, 4004 steps" in text and "HIQL 96 +- 1" in text
     assert "oposm ingest -p params-ogbench-antmaze-medium.yaml" in text
-    assert "Machine: test box." in text
+    assert "Machine: test box. Commit: " in text
+    # the development metric (training-data goals) gets a line of its own
+    assert "(`random_goal`, run `rg`, the development metric): oposm 80 (67-89) % of 50" in text
     assert "| x0.5 | 40 (28-54) | 40 (28-54) | 80 (67-89) | 51 | 49.3 |" in text  # its table
     assert "oposm 62 %" in text and "expert 100 %" in text  # (40 + 60) / 2 of 80 % at x1
     assert "than the expert policy): **does not hold** (shares 62 % vs 100 %" in text
