@@ -8,6 +8,7 @@ only, and calls the matching `stages.<name>.run`. `dvc repro` runs the same comm
 from __future__ import annotations
 
 import dataclasses
+import errno
 import functools
 import hashlib
 import importlib
@@ -16,7 +17,7 @@ import os
 import re
 import sys
 from collections.abc import Callable
-from inspect import cleandoc
+from inspect import cleandoc, signature
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -110,18 +111,48 @@ def _close_progress_bars() -> None:
 
 def _path_for_user(filename: str | os.PathLike) -> str:
     """The file a user asked for, for the hidden temporary (`.tmp-<name>.<random>`) or moved-aside
-    (`.old-<name>.<pid>`) names that atomic writes use next to it."""
-    path = Path(filename)
-    hidden = re.fullmatch(r"\.(?:tmp|old)-(.+)\.[^.]+", path.name)
-    return str(path.with_name(hidden.group(1)) if hidden else path)
+    (`.old-<name>.<pid>`) names that atomic writes use next to it, in the path's last part or in
+    a folder above it (a file written into a staged output folder)."""
+    parts = []
+    for part in Path(filename).parts:
+        while hidden := re.fullmatch(r"\.(?:tmp|old)-(.+)\.[^.]+", part):
+            part = hidden.group(1)  # a temporary of a temporary: once more
+        parts.append(part)
+    return str(Path(*parts)) if parts else str(filename)
 
 
-def _os_error_message(exc: OSError) -> str:
-    """'<path>: <why>' for an `OSError` (read-only or full disk, missing permission, ...)."""
+def _os_error_message(exc: OSError, data_option: bool = False) -> str:
+    """'<path>: <why> (<what to do>)' for an `OSError` (read-only or full disk, missing
+    permission, a file where a folder is needed, ...); `data_option`: the command takes --data,
+    a way out to suggest."""
     why = exc.strerror or str(exc)
     if exc.filename is None:
         return why
-    return f"{_path_for_user(exc.filename)}: {why}"
+    path = _path_for_user(exc.filename)
+    elsewhere = ", or use `--data` elsewhere" if data_option else ""
+    if exc.errno in (errno.ENOTDIR, errno.EEXIST):
+        culprit = _file_in_the_way(Path(path))
+        if culprit is not None:
+            return (
+                f"{path}: {why} ({culprit} is a file, and a folder is needed there; move or "
+                f"delete that file{elsewhere})"
+            )
+    if exc.errno == errno.EISDIR:
+        return f"{path}: {why} (that path is a folder, and a file is needed there; move it away)"
+    if exc.errno in (errno.EACCES, errno.EPERM):
+        return f"{path}: {why} (make it readable and writable for you{elsewhere})"
+    if exc.errno == errno.EROFS and data_option:
+        return f"{path}: {why} (use `--data` on a writable disk)"
+    return f"{path}: {why}"
+
+
+def _file_in_the_way(path: Path) -> Path | None:
+    """The deepest existing part of `path` (itself or a folder above it) when it is not a
+    folder: what a 'File exists' / 'Not a directory' error means."""
+    for part in (path, *path.parents):
+        if part.exists():
+            return None if part.is_dir() else part
+    return None
 
 
 def _fail(message: str, status: int = 1) -> None:
@@ -170,6 +201,7 @@ def _out_of_memory_message(command: str, exc: BaseException) -> str:
 def _user_errors(fn: Callable[..., Any]) -> Callable[..., Any]:
     """Turn a `UserError`, an `OSError` or running out of GPU memory into one line on stderr and
     exit status 1 (no traceback)."""
+    data_option = "data" in signature(fn).parameters
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
@@ -178,7 +210,7 @@ def _user_errors(fn: Callable[..., Any]) -> Callable[..., Any]:
         except UserError as exc:
             _fail(f"error: {exc}")
         except OSError as exc:
-            _fail(f"error: {_os_error_message(exc)}")
+            _fail(f"error: {_os_error_message(exc, data_option)}")
         except KeyboardInterrupt:
             _fail("interrupted; no partial output was kept", status=130)
         except Exception as exc:

@@ -27,7 +27,8 @@ from pipeline.errors import UserError
 
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    # No float param can take inf or nan (a learning rate of inf trains nothing): refused.
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
 
 
 class LeRobotSourceParams(_Section):
@@ -580,10 +581,11 @@ class DeployParams(_Section):
     def _agents_once(self) -> DeployParams:
         if len(set(self.agents)) != len(self.agents):
             raise ValueError(f"each agent at most once, got {self.agents}")
-        if self.subgoals.enabled and self.subgoals.reach > self.planner.horizon:
+        if self.subgoals.reach > self.planner.horizon:  # also while disabled: it cannot work
             raise ValueError(
                 f"subgoals.reach ({self.subgoals.reach}) must be <= planner.horizon "
-                f"({self.planner.horizon})"
+                f"({self.planner.horizon}): a waypoint lies within one plan; lower "
+                "subgoals.reach or raise planner.horizon"
             )
         return self
 
@@ -598,6 +600,7 @@ class Params(_Section):
     model_config = ConfigDict(
         extra="forbid",
         validate_assignment=True,
+        allow_inf_nan=False,
         validate_by_name=True,
         validate_by_alias=True,
         serialize_by_alias=True,
@@ -621,9 +624,11 @@ def _format_validation_error(
     if first["type"] in ("extra_forbidden", "unexpected_keyword_argument"):
         valid = ", ".join(_section_keys(first["loc"][:-1], root or Params))
         return f"{source}: unknown key '{key}'; valid keys here: {valid}"
-    expected = first["msg"]
+    expected = first["msg"].removeprefix("Value error, ")
     got = first.get("input")
     more = f" (and {len(err.errors()) - 1} more problems)" if len(err.errors()) > 1 else ""
+    if isinstance(got, dict):  # a check across a section's keys: its message names them
+        return f"{source}: bad values in '{key}': {expected}{more}"
     return f"{source}: bad value for '{key}': {expected}, got {got!r}{more}"
 
 

@@ -17,6 +17,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from pydantic import ConfigDict, with_config
+
+from pipeline.readback import Count, PositiveFinite
 
 
 @dataclass
@@ -50,6 +53,7 @@ class Episode:
         return int(self.observations.shape[0])
 
 
+@with_config(ConfigDict(extra="forbid"))  # read back (segments.json): an unknown key is an error
 @dataclass
 class DatasetInfo:
     """Provenance and what later stages need, stored as MCAP metadata records.
@@ -80,9 +84,9 @@ class DatasetInfo:
     action_names: list[str]
     state_units: list[str]
     action_units: list[str]
-    control_period: float
-    physics_dim: int = 0
-    goal_dim: int = 0
+    control_period: PositiveFinite
+    physics_dim: Count = 0
+    goal_dim: Count = 0
     seed: int | None = None
     env_kwargs: dict[str, Any] = field(default_factory=dict)
     generator: dict[str, Any] = field(default_factory=dict)

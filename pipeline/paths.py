@@ -8,8 +8,12 @@ there and reads each input from its own run folder when it made one, else from t
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
+
+from pipeline.io import Staging, check_outputs, staged_outputs
 
 
 @dataclass(frozen=True)
@@ -89,5 +93,27 @@ class Paths:
 
     def metrics(self, stage: str) -> Path:
         """A stage's headline metrics `metrics/<stage>.json` (what `dvc exp show` compares)."""
-        root = self.metrics_root if self.metrics_root is not None else self.root.parent / "metrics"
-        return root / f"{stage}.json"
+        return self.metrics_dir / f"{stage}.json"
+
+    @property
+    def metrics_dir(self) -> Path:
+        """Where the headline metrics go: `metrics_root`, or `metrics/` beside `root`."""
+        return self.metrics_root if self.metrics_root is not None else self.root.parent / "metrics"
+
+    def output_hint(self, path: Path) -> str:
+        """Where else an output that cannot be written may go: the option that moves it."""
+        if path.is_relative_to(self.metrics_dir):
+            return "pass `--metrics` another folder"
+        return "use `--data` elsewhere"
+
+    def staged(
+        self, files: Iterable[Path] = (), folders: Iterable[Path] = ()
+    ) -> AbstractContextManager[Staging]:
+        """`staged_outputs` of a stage's outputs (checked now, published together at the end),
+        with this data root's way out in the messages."""
+        return staged_outputs(files, folders, self.output_hint)
+
+    def check(self, files: Iterable[Path] = (), folders: Iterable[Path] = ()) -> None:
+        """`check_outputs` with this data root's way out: refuse a run whose outputs cannot be
+        written, before its work."""
+        check_outputs(files, folders, self.output_hint)

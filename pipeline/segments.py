@@ -17,12 +17,14 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from pydantic import BaseModel, Field
 from safetensors import SafetensorError
 from safetensors.numpy import load_file, save_file
 
 from pipeline.dataset import DatasetInfo, Episode
 from pipeline.errors import UserError
 from pipeline.io import atomic_dir
+from pipeline.readback import READBACK_CONFIG, Finite, PositiveFinite, Size, read_json, validated
 
 log = logging.getLogger(__name__)
 
@@ -31,8 +33,24 @@ FORMAT_VERSION = 1
 _ARRAYS_FILE = "segments.safetensors"
 _META_FILE = "segments.json"
 _STD_FLOOR = 1e-6
-# Keys of segments.json (any other missing key is one of the arrays).
-_META_KEYS = ("format_version", "dataset", "window", "stride", "seed", "splits", "stats")
+
+
+class _SavedStats(BaseModel):
+    state_mean: list[Finite]
+    state_std: list[PositiveFinite]
+    action_mean: list[Finite]
+    action_std: list[PositiveFinite]
+
+
+class _SavedIndex(BaseModel):
+    """segments.json as `load_segments` reads it back (checked before it is used)."""
+
+    model_config = READBACK_CONFIG
+    dataset: DatasetInfo
+    window: int = Field(ge=2)
+    stride: Size
+    seed: int
+    stats: _SavedStats
 
 
 @dataclass
@@ -227,6 +245,12 @@ def build_segments(
 
 def save_segments(segments: Segments, directory: str | Path) -> None:
     """Write `segments.safetensors` (arrays) and `segments.json` (metadata) atomically."""
+    with atomic_dir(directory) as tmp:
+        write_segments(segments, tmp)
+
+
+def write_segments(segments: Segments, directory: Path) -> None:
+    """Write `segments.safetensors` and `segments.json` into the (new, empty) `directory`."""
     arrays = {
         "states": segments.states,
         "actions": segments.actions,
@@ -246,9 +270,8 @@ def save_segments(segments: Segments, directory: str | Path) -> None:
         "splits": segments.summary(),
         "stats": segments.stats.to_json(),
     }
-    with atomic_dir(directory) as tmp:
-        save_file({k: np.ascontiguousarray(v) for k, v in arrays.items()}, tmp / _ARRAYS_FILE)
-        (tmp / _META_FILE).write_text(json.dumps(meta, indent=2) + "\n")
+    save_file({k: np.ascontiguousarray(v) for k, v in arrays.items()}, directory / _ARRAYS_FILE)
+    (directory / _META_FILE).write_text(json.dumps(meta, indent=2) + "\n")
 
 
 def load_segments(directory: str | Path) -> Segments:
@@ -262,42 +285,37 @@ def load_segments(directory: str | Path) -> Segments:
     meta_path, arrays_path = directory / _META_FILE, directory / _ARRAYS_FILE
     if not meta_path.exists() or not arrays_path.exists():
         raise UserError(f"{directory} holds no segments; run `oposm segment` first")
+    fix = "re-run `oposm segment`"
+    meta = read_json(meta_path, fix)
     try:
-        meta = json.loads(meta_path.read_text())
         arrays = load_file(arrays_path)
     except (OSError, ValueError, SafetensorError) as exc:
         raise UserError(
-            f"{directory}: segments are unreadable ({exc}); re-run `oposm segment`"
+            f"{arrays_path} is unreadable: damaged or not a safetensors file ({exc}); {fix}"
         ) from exc
     if not isinstance(meta, dict):
-        raise UserError(f"{meta_path} is not a JSON object; re-run `oposm segment`")
+        raise UserError(f"{meta_path} is not a JSON object; {fix}")
     if meta.get("format_version") != FORMAT_VERSION:
-        raise UserError(f"{directory}: segments format is outdated; re-run `oposm segment`")
-    try:
-        segments = Segments(
-            info=DatasetInfo(**meta["dataset"]),
-            window=int(meta["window"]),
-            stride=int(meta["stride"]),
-            states=arrays["states"],
-            actions=arrays["actions"],
-            physics=arrays.get("physics"),
-            episode_offsets=arrays["episode_offsets"],
-            episode_index=arrays["episode_index"],
-            episode_split=arrays["episode_split"],
-            starts={s: arrays[f"starts_{s}"] for s in SPLITS},
-            stats=NormStats.from_json(meta["stats"]),
-            seed=int(meta["seed"]),
-        )
-    except KeyError as exc:
-        key = exc.args[0] if exc.args else "?"
-        where = _META_FILE if key in _META_KEYS else _ARRAYS_FILE
-        raise UserError(
-            f"{directory}: {where} has no '{key}' entry; re-run `oposm segment`"
-        ) from exc
-    except (TypeError, ValueError) as exc:
-        raise UserError(
-            f"{directory}: {_META_FILE} has a malformed entry ({exc}); re-run `oposm segment`"
-        ) from exc
+        raise UserError(f"{directory}: segments format is outdated; {fix}")
+    index = validated(_SavedIndex, meta, meta_path, fix)
+    needed = ["states", "actions", "episode_offsets", "episode_index", "episode_split"]
+    missing = [k for k in [*needed, *(f"starts_{s}" for s in SPLITS)] if k not in arrays]
+    if missing:
+        raise UserError(f"{directory}: {_ARRAYS_FILE} has no '{missing[0]}' entry; {fix}")
+    segments = Segments(
+        info=index.dataset,
+        window=index.window,
+        stride=index.stride,
+        states=arrays["states"],
+        actions=arrays["actions"],
+        physics=arrays.get("physics"),
+        episode_offsets=arrays["episode_offsets"],
+        episode_index=arrays["episode_index"],
+        episode_split=arrays["episode_split"],
+        starts={s: arrays[f"starts_{s}"] for s in SPLITS},
+        stats=NormStats.from_json(index.stats.model_dump()),
+        seed=index.seed,
+    )
     problem = _inconsistency(segments)
     if problem:
         raise UserError(f"{directory}: {problem}; re-run `oposm segment`")

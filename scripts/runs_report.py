@@ -19,19 +19,16 @@ same seeds and goals). `--command` lists the commands that produced them, in ord
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import sys
 from datetime import date
 from pathlib import Path
 
-import torch
 from scipy.stats import binomtest
 
 from pipeline.errors import UserError
 from pipeline.evaluation.proportions import difference_interval
 from pipeline.io import atomic_path, write_json
-from stages.results_common import pct, rate, read
+from pipeline.reporting.common import cell, machine, rate, read, stamp, stamp_text
 
 ROOT = Path(__file__).resolve().parents[1]
 TRAIN_KEYS = ("best_step", "best_val_st_nll_prior", "best_val_st_nll", "val_action_nll",
@@ -46,7 +43,7 @@ def _labelled(text: str, what: str) -> tuple[str, Path]:
 
 
 def _read_json(path: Path) -> object:
-    """`path`'s JSON (`results_common.read`); a missing file is a `UserError` too."""
+    """`path`'s JSON (`pipeline.reporting.common.read`); a missing file is a `UserError` too."""
     data = read(path)
     if data is None:
         raise UserError(f"{path} does not exist; run the command that writes it first")
@@ -101,15 +98,9 @@ def paired(a: dict[tuple[str, int], dict], b: dict[tuple[str, int], dict]) -> di
 
 
 def this_machine() -> str:
-    """The CPU model (and whether it multiplies bfloat16 natively), cores, torch, today's date."""
-    cpuinfo = Path("/proc/cpuinfo")
-    text = cpuinfo.read_text() if cpuinfo.exists() else ""
-    names = [line.split(":", 1)[1].strip() for line in text.splitlines()
-             if line.startswith("model name")]  # fmt: skip
-    cpu = names[0] if names else platform.processor() or platform.machine()
-    bf16 = " (with AVX512-BF16)" if " avx512_bf16" in text else ""
-    return (f"{cpu}{bf16}, {os.cpu_count()} cores, torch {torch.__version__}; report written "
-            f"{date.today().isoformat()}")  # fmt: skip
+    """This machine (`pipeline.reporting.common.machine`: the CPU model and whether it multiplies
+    bfloat16 natively, cores, GPUs, torch) and today's date."""
+    return f"{machine()}; report written {date.today().isoformat()}"
 
 
 def markdown(report: dict) -> str:
@@ -117,7 +108,8 @@ def markdown(report: dict) -> str:
         f"# {report['title']}",
         "",
         f"Written by `scripts/runs_report.py` (numbers: `{report['name']}.json`). "
-        f"Machine: {report['machine']}.",
+        f"Machine: {report['machine']}."
+        + (f" Report {stamp_text(report['stamp'])}." if report.get("stamp") else ""),
         "",
         *[f"{p}\n" for p in report["intro"]],
         "Commands, in order:",
@@ -154,8 +146,7 @@ def markdown(report: dict) -> str:
         ]
         for label, rows in report["deploy"].items():
             cells = [
-                f"{pct(r['rate'])} [{pct(r['ci95'][0])}, {pct(r['ci95'][1])}], "
-                f"{r['successes']}/{r['episodes']}"
+                f"{cell(r)}, {r['successes']}/{r['episodes']}"
                 for r in (rows[t] for t in [*tasks, "all"])
             ]
             lines.append(f"| {label} | " + " | ".join(cells) + " |")
@@ -225,6 +216,7 @@ def main(argv: list[str] | None = None) -> None:
             "name": args.out.name,
             "intro": args.intro,
             "machine": args.machine or this_machine(),
+            "stamp": stamp(ROOT),
             "commands": args.command,
             "train": train,
             "deploy": {label: success_rows(e) for label, e in loaded.items()},

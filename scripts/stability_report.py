@@ -12,11 +12,9 @@ import argparse
 import statistics
 from pathlib import Path
 
-from runs_report import this_machine  # scripts/ is this script's own folder on sys.path
-
 from pipeline.evaluation.proportions import wilson_interval
 from pipeline.io import atomic_path, write_json
-from stages.results_common import code_version, read
+from pipeline.reporting.common import percent, read, stamp, stamp_text
 
 NLL_BAND = 0.5  # nats around the recipe's median
 MIN_SUCCESS = 0.95  # random goals reached
@@ -63,16 +61,15 @@ def _success(row: dict, task: str) -> str:
         return ""
     n = row[f"{task}_episodes"]
     k = round(row[f"{task}_success"] * n)
-    low, high = wilson_interval(k, n)
-    return f"{100 * k / n:.0f} % [{100 * low:.0f}, {100 * high:.0f}], {k}/{n}"
+    return f"{percent(k / n, *wilson_interval(k, n), digits=0)}, {k}/{n}"
 
 
-def markdown(rows: list[dict], commit: str) -> str:
+def markdown(rows: list[dict], stamped: dict) -> str:
     lines = [
         "# EM across seeds: every run trained and deployed",
         "",
-        f"Written by `scripts/stability_report.py` (numbers: `stability-cpu.json`). Commit "
-        f"{commit}; machine: {this_machine()}.",
+        "Written by `scripts/stability_report.py` (numbers: `stability-cpu.json`); "
+        f"{stamp_text(stamped)}.",
         "",
         "Command: `bash scripts/stability_cpu.sh` (two runs at a time, one torch thread each; "
         "the main job's params in bfloat16, 5000 steps; deploy: the main job's 100 random goals "
@@ -85,7 +82,7 @@ def markdown(rows: list[dict], commit: str) -> str:
         "E-step with `train.action_likelihood: censored` or `train.policy_trunk: "
         "layernorm_silu`.",
         "",
-        "| recipe | seed | published step | val s_T NLL, prior skills | diverged | random_goal "
+        "| recipe | seed | published step | val s_T NLL, prior skills | diverged | random_goal, % "
         "(Wilson 95 %) | corners | stable |",
         "|---|---|---|---|---|---|---|---|",
     ]
@@ -115,10 +112,11 @@ def main() -> None:
     parser.add_argument("--out", type=Path, required=True, help="results/<name> (no suffix)")
     args = parser.parse_args()
     rows = collect([_run(text) for text in args.run])
-    commit = code_version(Path.cwd()) or "unknown"
-    write_json(args.out.with_suffix(".json"), {"commit": commit, "runs": rows})
+    stamped = stamp(Path.cwd())
+    write_json(args.out.with_suffix(".json"), {"commit": stamped["commit"], "stamp": stamped,
+                                               "runs": rows})  # fmt: skip
     with atomic_path(args.out.with_suffix(".md")) as tmp:
-        tmp.write_text(markdown(rows, commit))
+        tmp.write_text(markdown(rows, stamped))
 
 
 if __name__ == "__main__":

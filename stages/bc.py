@@ -20,7 +20,7 @@ from pipeline.model.checkpoint import save_policy
 from pipeline.paths import Paths
 from pipeline.segments import load_segments
 from pipeline.training.bc import fit_policy
-from stages.report import write_report
+from stages.report import report_files, write_report
 
 log = logging.getLogger(__name__)
 
@@ -39,6 +39,8 @@ def fit_and_save(params: Params, paths: Paths, kind: str, cfg: PolicyParams) -> 
     """Fit the `kind` policy (`bc`: p(a | s); `gcbc`: p(a | s, g) over the environment's goal
     dims) on `data/segments/<name>/`; write the checkpoint and the report; return the metrics."""
     name = params.ingest.name
+    files, folders = report_files(paths, kind), [paths.policy(name, kind)]
+    paths.check(files, folders)
     segments = load_segments(paths.existing(paths.segments(name)))
     goal_dims: tuple[int, ...] = ()
     if kind == "gcbc":
@@ -47,8 +49,11 @@ def fit_and_save(params: Params, paths: Paths, kind: str, cfg: PolicyParams) -> 
     with torch_threads(1 if device.type == "cpu" else None):
         policy, metrics = fit_policy(segments, cfg, device, goal_dims)
     extra = {"dataset": segments.info.name, "info": dataclasses.asdict(segments.info)}
-    save_policy(policy, paths.policy(name, kind), kind, extra | {"metrics": metrics})
-    write_report(paths, kind, metrics | {"device": str(device)})
+    with paths.staged(files, folders) as out:  # the policy and its report together
+        save_policy(
+            policy, out.folder(paths.policy(name, kind)), kind, extra | {"metrics": metrics}
+        )
+        write_report(paths, kind, metrics | {"device": str(device)}, out)
     log.info(
         "%s policy: val NLL %.3f, action RMSE %.3f after %d steps (%.0f s) -> %s",
         kind,

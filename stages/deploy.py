@@ -46,8 +46,7 @@ from pipeline.evaluation.tasks import (
     check_task,
     train_locations,
 )
-from pipeline.io import atomic_dir, write_json
-from pipeline.model.checkpoint import load_dynamics, load_model, load_policy
+from pipeline.model.checkpoint import load_dynamics, load_model, load_policy, skill_horizon
 from pipeline.paths import Paths
 from pipeline.planning.agents import Agent, ExpertAgent, PolicyAgent
 from pipeline.planning.llp import LowLevelMPC, LowLevelPlanner
@@ -58,7 +57,7 @@ from pipeline.planning.subgoals import SubgoalGraph
 from pipeline.segments import Segments, load_segments
 from pipeline.viz.deploy import recording_name, write_episode_recording
 from pipeline.viz.overview import write_overview
-from stages.report import write_report
+from stages.report import report_files, write_report
 
 log = logging.getLogger(__name__)
 
@@ -113,10 +112,10 @@ def _oposm(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, devi
             subgoals,
             getattr(spec, "fallen", None),
         ),  # fmt: skip
-        cfg.replan_every or int(meta["window"]) - 1,
+        cfg.replan_every or skill_horizon(meta, model_dir),
         {"model": str(model_dir), "model_step": meta.get("step"), **cfg.planner.model_dump()}
         | ({f"subgoals_{k}": v for k, v in cfg.subgoals.model_dump().items()} if subgoals else {}),
-        plan_state_steps=int(meta["window"]) - 1,  # a skill
+        plan_state_steps=skill_horizon(meta, model_dir),  # a skill
     )
 
 
@@ -287,6 +286,9 @@ def _ogbench_overall(results: dict[str, list[EpisodeResult]], dt: float, limits)
 
 def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
     cfg, name = params.deploy, params.ingest.name
+    recordings = paths.recordings("deploy")
+    files = [paths.live("deploy") / "episodes.json", *report_files(paths, "deploy")]
+    paths.check(files, [recordings])  # before the episodes: a path that cannot be written fails now
     for task in cfg.tasks:
         check_task(task)
     device = resolve_device(cfg.device, "deploy.device")
@@ -312,9 +314,9 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
     by_agent: dict[str, Any] = {}
     rows: list[dict] = []
     episodes: list[EpisodeResult] = []  # every agent's, for the run overview
-    recordings = paths.recordings("deploy")
     recorded = 0
-    with atomic_dir(recordings) as tmp:
+    with paths.staged(files, [recordings]) as out:  # published together, or none
+        tmp = out.folder(recordings)
         for agent_name, setup in setups.items():
             run_cfg = RunConfig(max_steps, setup.replan_every, cfg.success_radius)
 
@@ -342,27 +344,27 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
             episodes += [r for task in specs for r in results[task]]
         write_overview(tmp / "overview.rrd", episodes, spec)
 
-    report: dict[str, Any] = {
-        "dataset": name,
-        "env_id": spec.env_id,
-        "device": str(device),
-        "torch_threads": torch.get_num_threads(),
-        "agents": list(cfg.agents),
-        "tasks": reported,
-        "episodes": len(rows),
-        "episodes_per_task": cfg.episodes,
-        "success_radius": cfg.success_radius,
-        "mass_scale": cfg.mass_scale,
-        "disturbance": pushes.to_dict(),
-        "max_steps": max_steps,
-        "shorter_limits": limits,
-        "by_agent": by_agent,
-        "wall_s": time.perf_counter() - started,
-        "recordings": str(recordings),
-        "recorded_episodes": recorded,
-    }
-    if "oposm" in by_agent and "llp" in by_agent:
-        report["oposm_vs_llp"] = compare_planners(report, "oposm", "llp")
-    write_json(paths.live("deploy") / "episodes.json", rows)
-    write_report(paths, "deploy", report)
+        report: dict[str, Any] = {
+            "dataset": name,
+            "env_id": spec.env_id,
+            "device": str(device),
+            "torch_threads": torch.get_num_threads(),
+            "agents": list(cfg.agents),
+            "tasks": reported,
+            "episodes": len(rows),
+            "episodes_per_task": cfg.episodes,
+            "success_radius": cfg.success_radius,
+            "mass_scale": cfg.mass_scale,
+            "disturbance": pushes.to_dict(),
+            "max_steps": max_steps,
+            "shorter_limits": limits,
+            "by_agent": by_agent,
+            "wall_s": time.perf_counter() - started,
+            "recordings": str(recordings),
+            "recorded_episodes": recorded,
+        }
+        if "oposm" in by_agent and "llp" in by_agent:
+            report["oposm_vs_llp"] = compare_planners(report, "oposm", "llp")
+        out.write_json(paths.live("deploy") / "episodes.json", rows)
+        write_report(paths, "deploy", report, out)
     return report

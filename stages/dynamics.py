@@ -16,7 +16,7 @@ from pipeline.model.checkpoint import save_dynamics
 from pipeline.paths import Paths
 from pipeline.segments import load_segments
 from pipeline.training.dynamics import fit_dynamics
-from stages.report import write_report
+from stages.report import report_files, write_report
 
 log = logging.getLogger(__name__)
 
@@ -24,13 +24,16 @@ log = logging.getLogger(__name__)
 def run(params: Params, paths: Paths) -> dict[str, float]:
     """Train on `data/segments/<name>/`; write the checkpoint and the metrics; return them."""
     cfg, name = params.dynamics, params.ingest.name
+    files, folders = report_files(paths, "dynamics"), [paths.dynamics(name)]
+    paths.check(files, folders)
     segments = load_segments(paths.existing(paths.segments(name)))
     device = resolve_device(cfg.device, "dynamics.device")
     with torch_threads(1 if device.type == "cpu" else None):
         model, metrics = fit_dynamics(segments, cfg, device)
     extra = {"dataset": segments.info.name, "info": dataclasses.asdict(segments.info)}
-    save_dynamics(model, paths.dynamics(name), extra | {"metrics": metrics})
-    write_report(paths, "dynamics", metrics | {"device": str(device)})
+    with paths.staged(files, folders) as out:  # the model and its report together
+        save_dynamics(model, out.folder(paths.dynamics(name)), extra | {"metrics": metrics})
+        write_report(paths, "dynamics", metrics | {"device": str(device)}, out)
     log.info(
         "dynamics model: val NLL %.3f, one-step RMSE %.2e after %d steps (%.0f s) -> %s",
         metrics["val_nll"],

@@ -15,10 +15,9 @@ from pipeline.envs.disturbance import Pushes
 from pipeline.envs.generate import dataset_info, generate_episodes
 from pipeline.envs.spec import check_physics_dim
 from pipeline.errors import UserError
-from pipeline.io import atomic_path
 from pipeline.paths import Paths
 from pipeline.recording import iter_episodes, write_dataset
-from stages.report import write_report
+from stages.report import report_files, write_report
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +57,20 @@ def _source(params: Params, progress: bool) -> tuple[DatasetInfo, Iterator[Episo
     return imported.info, imported.episodes
 
 
+def _source_file(params: Params) -> str | None:
+    """The file or folder an import reads (for messages about its data); None when generated."""
+    cfg = params.ingest
+    if cfg.source == "d4rl":
+        return cfg.d4rl.path
+    if cfg.source == "lerobot":
+        return cfg.lerobot.root or cfg.lerobot.repo_id
+    if cfg.source == "minari":
+        return cfg.minari.path or cfg.minari.dataset_id
+    if cfg.source == "ogbench":
+        return cfg.ogbench.path
+    return None
+
+
 def _check(path: Path, info: DatasetInfo, max_fallen_share: float) -> DatasetReport | None:
     """Maze checks of the written file: all of them for the built-in expert, OGBench's own for
     OGBench data (`check_ogbench_dataset`; ant falls up to `max_fallen_share` of the steps); for
@@ -94,31 +107,32 @@ def run(params: Params, paths: Paths, progress: bool = True) -> dict[str, float]
     """
     cfg = params.ingest
     dest = paths.demos(cfg.name)
-    start = time.perf_counter()
-    info, episodes = _source(params, progress)
-    check_physics_dim(
-        info,
-        str(dest),
-        "the source was recorded in another MuJoCo model: import it with the env id of that "
-        "model, or with none",
-    )
-    with atomic_path(dest) as tmp:
-        written = write_dataset(tmp, info, episodes)
+    with paths.staged([dest, *report_files(paths, "ingest")]) as out:  # checked before the work
+        start = time.perf_counter()
+        info, episodes = _source(params, progress)
+        check_physics_dim(
+            info,
+            str(dest),
+            "the source was recorded in another MuJoCo model: import it with the env id of that "
+            "model, or with none",
+        )
+        tmp = out.file(dest)
+        written = write_dataset(tmp, info, episodes, shown_as=dest, source=_source_file(params))
         generated = time.perf_counter() - start
         report = _check(tmp, info, cfg.ogbench.max_fallen_share)
         if report is not None:
             raise_for_problems(report, name=str(dest))
-    elapsed = time.perf_counter() - start
-    metrics = {
-        "episodes": written.episodes,
-        "steps": written.steps,
-        "bytes": written.bytes,
-        "bytes_per_step": written.bytes / written.steps,
-        "generate_steps_per_s": written.steps / generated,
-        "seconds": elapsed,
-        **(report.metrics() if report is not None else {}),
-    }
-    write_report(paths, "ingest", metrics)
+        elapsed = time.perf_counter() - start
+        metrics = {
+            "episodes": written.episodes,
+            "steps": written.steps,
+            "bytes": written.bytes,
+            "bytes_per_step": written.bytes / written.steps,
+            "generate_steps_per_s": written.steps / generated,
+            "seconds": elapsed,
+            **(report.metrics() if report is not None else {}),
+        }
+        write_report(paths, "ingest", metrics, out)
     log.info(
         "wrote %s (%s): %d episodes, %d steps, %.1f bytes/step, %.0f steps/s%s",
         dest,

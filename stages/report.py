@@ -8,9 +8,10 @@ experiment's commit carries it. Everything else stays in the detailed report.
 from __future__ import annotations
 
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
-from pipeline.io import write_json
+from pipeline.io import Staging
 from pipeline.paths import Paths
 
 Report = dict[str, Any]
@@ -101,12 +102,27 @@ HEADLINES: dict[str, Callable[[Report], Report]] = {
 }
 
 
-def write_report(paths: Paths, stage: str, report: Report) -> None:
-    """Write `report` to `data/reports/<stage>/report.json` and its headline to `metrics/`."""
-    write_json(paths.report(stage), report)
-    write_json(paths.metrics(stage), HEADLINES[stage](report))
+def report_files(paths: Paths, stage: str) -> list[Path]:
+    """The files `write_report` writes: `data/reports/<stage>/report.json` and the headline."""
+    return [paths.report(stage), paths.metrics(stage)]
 
 
-def write_headline(paths: Paths, stage: str, report: Report) -> None:
-    """Write only the headline of `report` (its details are written elsewhere, e.g. dvclive)."""
-    write_json(paths.metrics(stage), HEADLINES[stage](report))
+def write_report(paths: Paths, stage: str, report: Report, out: Staging | None = None) -> None:
+    """Write `report` to `data/reports/<stage>/report.json` and its headline to `metrics/`:
+    staged in `out` (published with the stage's other outputs), or both at once now."""
+    if out is None:
+        with paths.staged(report_files(paths, stage)) as staging:
+            write_report(paths, stage, report, staging)
+        return
+    out.write_json(paths.report(stage), report)
+    out.write_json(paths.metrics(stage), HEADLINES[stage](report))
+
+
+def write_headline(paths: Paths, stage: str, report: Report, out: Staging | None = None) -> None:
+    """Write only the headline of `report` (its details are written elsewhere, e.g. dvclive),
+    staged in `out` or now."""
+    if out is None:
+        with paths.staged([paths.metrics(stage)]) as staging:
+            write_headline(paths, stage, report, staging)
+        return
+    out.write_json(paths.metrics(stage), HEADLINES[stage](report))

@@ -8,19 +8,18 @@ writes `results/experiments.md` (the report), `results/experiments.json` (the sa
 behind `dvc plots show experiments/dvc.yaml`. An experiment whose reports are missing is reported
 as not run.
 
-Verdicts compare success rates with 95 % intervals: a difference between two agents holds when its
-Newcombe interval excludes 0 in the claimed direction, does not hold when it excludes 0 the other
-way, and is inconclusive otherwise. A paper success rate is matched unless ours is significantly
-below it: the interval of ours minus the paper's (its rate taken as `paper.EPISODES_MAZE2D`
-episodes; it ran 250-300 per maze) lies below 0.
+Verdicts follow the rules of `pipeline.reporting.common`: a difference between two agents holds
+when its Newcombe interval excludes 0 in the claimed direction, does not hold when it excludes 0
+the other way, and is inconclusive otherwise (`versus`; the mass sweep compares the success pooled
+over the perturbed factors, `off_nominal`). A paper success rate is reproduced unless ours is
+significantly below it: the interval of ours minus the paper's (its rate taken as
+`paper.EPISODES_MAZE2D` episodes; it ran 250-300 per maze) lies below 0 (`reproduces`).
 """
 
 from __future__ import annotations
 
 import csv
 import io
-import os
-import platform
 from pathlib import Path
 from typing import Any
 
@@ -29,7 +28,19 @@ import yaml
 from pipeline.errors import UserError
 from pipeline.evaluation import paper
 from pipeline.io import atomic_path, write_json
-from stages.results_common import Report, cell, code_version, pct, rate, read, versus
+from pipeline.reporting.common import (
+    Report,
+    cell,
+    off_nominal,
+    pct,
+    points,
+    rate,
+    read,
+    reproduces,
+    stamp,
+    stamp_text,
+    versus,
+)
 from stages.results_em_vi import em_vi, em_vi_tables, selection, selection_tables
 from stages.results_em_vi import plot_rows as em_vi_plot_rows
 
@@ -60,17 +71,17 @@ def _maze_claims(maze: str, numbers: dict[str, Any]) -> list[dict[str, Any]]:
     if "oposm" in rg and "oposm" in published:
         ours, (theirs, _) = rg["oposm"], published["oposm"]
         n = paper.EPISODES_MAZE2D
-        _, (lo, hi) = versus(ours, rate(round(theirs * n), n))
+        verdict, interval = reproduces(ours, theirs, n)
         claims.append(
             {
                 "claim": f"OPOSM reaches random goals in maze2d-{maze} (table 4: {pct(theirs)} %)",
-                "verdict": "does not hold" if hi < 0 else "holds",
+                "verdict": verdict,
                 "numbers": f"ours {cell(ours)} % in 2000 steps; ours - paper's (as {n} "
-                f"episodes) [{pct(lo)}, {pct(hi)}] points",
+                f"episodes) {points(interval)} points",
             }
         )
     if "oposm" in rg and "llp" in rg:
-        verdict, (lo, hi) = versus(rg["oposm"], rg["llp"])
+        verdict, interval = versus(rg["oposm"], rg["llp"])
         paper_llp = published.get("llp")
         said = f" (table 4: {pct(paper_llp[0])} %)" if paper_llp else ""
         claims.append(
@@ -78,7 +89,7 @@ def _maze_claims(maze: str, numbers: dict[str, Any]) -> list[dict[str, Any]]:
                 "claim": f"OPOSM reaches random goals more often than LLP{said}, {maze}",
                 "verdict": verdict,
                 "numbers": f"OPOSM {cell(rg['oposm'])} vs LLP {cell(rg['llp'])} %; difference "
-                f"[{pct(lo)}, {pct(hi)}] points",
+                f"{points(interval)} points",
             }
         )
     if "oposm" in numbers and "llp" in numbers:
@@ -109,12 +120,7 @@ def _mass(report_of: dict[str, Report | None], factors: dict[str, float]) -> dic
             wins = sum(r[t]["successes"] for t in report["tasks"])
             n = sum(r[t]["episodes"] for t in report["tasks"])
             table.setdefault(agent, {})[str(factor)] = rate(wins, n)
-    perturbed = {}
-    for agent, by_factor in table.items():
-        off = [r for f, r in by_factor.items() if float(f) != 1.0]
-        if off:
-            wins, n = sum(r["successes"] for r in off), sum(r["episodes"] for r in off)
-            perturbed[agent] = rate(wins, n)
+    perturbed = {a: p for a, by_factor in table.items() if (p := off_nominal(by_factor))}
     return {"success": table, "perturbed_pooled": perturbed}
 
 
@@ -123,14 +129,14 @@ def _mass_claims(mass: dict[str, Any]) -> list[dict[str, Any]]:
     claims = []
     for other in ("expert", "gcbc"):
         if "oposm" in pooled and other in pooled:
-            verdict, (lo, hi) = versus(pooled["oposm"], pooled[other])
+            verdict, interval = versus(pooled["oposm"], pooled[other])
             claims.append(
                 {
                     "claim": f"OPOSM stays more successful than {other} when the mass "
                     "changes (fig. 5)",
                     "verdict": verdict,
                     "numbers": f"pooled over factors != 1: OPOSM {cell(pooled['oposm'])} vs "
-                    f"{other} {cell(pooled[other])} %; difference [{pct(lo)}, {pct(hi)}] "
+                    f"{other} {cell(pooled[other])} %; difference {points(interval)} "
                     "points",
                 }
             )
@@ -181,9 +187,15 @@ def collect(experiments: Path, repo: Path) -> dict[str, Any]:
         results["not_run"].append(
             f"model selection: {selected} of its {runs_planned // 2} deploys have finished"
         )
-    results["assembled_on"] = f"{platform.platform()}, {os.cpu_count()} CPUs"
-    results["code"] = code_version(repo)
+    results["stamp"] = stamp(repo)
     return results
+
+
+def _stamp(results: dict[str, Any]) -> dict[str, Any]:
+    """The report's stamp (results written before the stamp: their machine and commit)."""
+    if "stamp" in results:
+        return results["stamp"]
+    return {"machine": results.get("assembled_on"), "commit": results.get("code")}
 
 
 def _maze_table(results: dict[str, Any]) -> list[str]:
@@ -233,9 +245,8 @@ def markdown(results: dict[str, Any]) -> str:
         "# The paper's experiments: our numbers beside the paper's",
         "",
         "Made by `oposm results` (the last stage of `uv run dvc repro experiments/dvc.yaml`) "
-        "from the deploy reports of the experiments that have run; assembled on "
-        f"{results['assembled_on']}, code at commit {results['code']} (the stages' own code "
-        "versions are in experiments/dvc.lock). "
+        f"from the deploy reports of the experiments that have run; {stamp_text(_stamp(results))} "
+        "(the stages' own code versions are in experiments/dvc.lock). "
         "Success rates in %, with 95 % Wilson intervals in brackets; differences with Newcombe "
         "intervals. Verdicts: a claim holds when the interval excludes the opposite.",
         "",

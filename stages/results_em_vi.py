@@ -16,7 +16,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from stages.results_common import cell, pct, rate, read, separated, versus
+from pipeline.reporting.common import cell, pct, points, pooled, rate, read, separated, versus
 
 METHODS = ("em", "vi")
 MODEL = "models/pointmaze-medium"
@@ -49,8 +49,7 @@ def _run(root: Path) -> dict[str, Any] | None:
 
 
 def _pooled(runs: dict[str, dict[str, Any]]) -> dict[str, Any]:
-    wins = sum(r["success"]["successes"] for r in runs.values())
-    return rate(wins, sum(r["success"]["episodes"] for r in runs.values()))
+    return pooled([r["success"] for r in runs.values()])
 
 
 def _values(runs: dict[str, dict[str, Any]], key: str) -> list[float]:
@@ -79,12 +78,12 @@ def _em_vi_claims(tag: str, em: dict, vi: dict) -> list[dict[str, Any]]:
             "verdict": verdict,
             "numbers": f"per seed EM {_rounded(a)}, VI {_rounded(b)}",
         })  # fmt: skip
-    verdict, (lo, hi) = versus(_pooled(em), _pooled(vi))
+    verdict, interval = versus(_pooled(em), _pooled(vi))
     claims.append({
         "claim": f"On the {tag} maze, OPOSM with EM reaches goals more often than with VI",
         "verdict": verdict,
         "numbers": f"EM {cell(_pooled(em))} vs VI {cell(_pooled(vi))} % (seeds pooled); "
-        f"difference [{pct(lo)}, {pct(hi)}] points",
+        f"difference {points(interval)} points",
     })  # fmt: skip
     return claims
 
@@ -146,7 +145,7 @@ def selection(exp: dict[str, Any], repo: Path) -> tuple[dict[str, Any], list[dic
         if len(rows) == len(cfg["seeds"]) >= 3:
             prior_pool = _pooled({k: r["by_st_nll_prior"] for k, r in rows.items()})
             post_pool = _pooled({k: r["by_st_nll"] for k, r in rows.items()})
-            verdict, (lo, hi) = versus(prior_pool, post_pool)
+            verdict, interval = versus(prior_pool, post_pool)
             same = sum(r["step_by_st_nll"] == r["step_by_st_nll_prior"] for r in rows.values())
             claims.append({
                 "claim": f"On the {dataset['tag']} maze, the checkpoint with the best "
@@ -155,7 +154,7 @@ def selection(exp: dict[str, Any], repo: Path) -> tuple[dict[str, Any], list[dic
                 "verdict": verdict,
                 "numbers": f"by prior {cell(prior_pool)} vs by posterior {cell(post_pool)} % "
                 f"(seeds pooled; {same} of {len(rows)} seeds picked the same step); "
-                f"difference [{pct(lo)}, {pct(hi)}] points",
+                f"difference {points(interval)} points",
             })  # fmt: skip
     return table, claims
 

@@ -10,8 +10,8 @@ from pipeline.envs.spec import check_physics_dim, make_env_spec
 from pipeline.errors import UserError
 from pipeline.paths import Paths
 from pipeline.recording import iter_episodes, read_info
-from pipeline.segments import Segments, build_segments, save_segments
-from stages.report import write_report
+from pipeline.segments import Segments, build_segments, write_segments
+from stages.report import report_files, write_report
 
 log = logging.getLogger(__name__)
 
@@ -20,6 +20,8 @@ def run(params: Params, paths: Paths) -> Segments:
     """Read `data/demos/<name>.mcap`, write `data/segments/<name>/` and `reports/segment/`."""
     cfg = params.segment
     source = paths.existing(paths.demos(params.ingest.name))
+    destination = paths.segments(params.ingest.name)
+    paths.check(report_files(paths, "segment"), [destination])
     start = time.perf_counter()
     info = read_info(source)
     check_physics_dim(
@@ -46,14 +48,12 @@ def run(params: Params, paths: Paths) -> Segments:
         seed=cfg.seed,
         exclude=exclude,
     )
-    save_segments(segments, paths.segments(params.ingest.name))
-    elapsed = time.perf_counter() - start
-    summary = segments.summary()
-    write_report(
-        paths,
-        "segment",
-        {**{f"{s}_{k}": v for s, d in summary.items() for k, v in d.items()}, "seconds": elapsed},
-    )
+    with paths.staged(report_files(paths, "segment"), [destination]) as out:  # all or nothing
+        write_segments(segments, out.folder(destination))
+        elapsed = time.perf_counter() - start
+        summary = segments.summary()
+        report = {f"{s}_{k}": v for s, d in summary.items() for k, v in d.items()}
+        write_report(paths, "segment", {**report, "seconds": elapsed}, out)
     for split, counts in summary.items():
         log.info(
             "%-10s %4d episodes %8d steps %8d windows",

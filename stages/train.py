@@ -19,7 +19,7 @@ import torch
 from pipeline.config import Params, TrainParams
 from pipeline.devices import AutoThreads, resolve_device
 from pipeline.errors import UserError
-from pipeline.io import atomic_dir, copy_dir, output_lock
+from pipeline.io import output_lock
 from pipeline.model import SkillModel, SkillModelConfig, save_model
 from pipeline.model.checkpoint import WEIGHTS_FILE
 from pipeline.model.settings import skill_model_config
@@ -105,6 +105,7 @@ def run(params: Params, paths: Paths, progress_bar: bool = True) -> Progress:
     the run ends, so a killed run resumes, and an old model stays until a new one replaces it.
     """
     cfg, name = params.train, params.ingest.name
+    paths.check(*_outputs(paths, name))  # before the minutes of training, not after
     segments_dir = paths.existing(paths.segments(name))
     segments = load_segments(segments_dir)
     if segments.info.name != name:
@@ -294,12 +295,18 @@ def _publish(
     headline."""
     if not (best_dir / select / WEIGHTS_FILE).exists():
         raise UserError(f"training ended without a validated model in {best_dir}; raise max_steps")
-    with atomic_dir(paths.model(name)) as tmp:
-        shutil.copytree(best_dir / select, tmp, dirs_exist_ok=True)
+    with paths.staged(*_outputs(paths, name)) as out:  # all of them, or none
+        model = out.folder(paths.model(name))
+        shutil.copytree(best_dir / select, model, dirs_exist_ok=True)
         for criterion in SELECTION_CRITERIA:
-            shutil.copytree(best_dir / criterion, tmp / BY_CRITERION / criterion)
-    copy_dir(live_dir, paths.live("train"))
-    write_headline(paths, "train", summary)
+            shutil.copytree(best_dir / criterion, model / BY_CRITERION / criterion)
+        shutil.copytree(live_dir, out.folder(paths.live("train")), dirs_exist_ok=True)
+        write_headline(paths, "train", summary, out)
+
+
+def _outputs(paths: Paths, name: str) -> tuple[list[Path], list[Path]]:
+    """The stage's outputs: files (the headline), folders (the model, the dvclive reports)."""
+    return [paths.metrics("train")], [paths.model(name), paths.live("train")]
 
 
 def _check_in_sync(accelerator, model: SkillModel) -> None:

@@ -20,11 +20,10 @@ from pipeline.envs.spec import make_env_spec
 from pipeline.evaluation.compat import check_same_environment
 from pipeline.evaluation.open_loop import run_open_loop
 from pipeline.evaluation.open_loop_metrics import end_position_table, error_table, open_loop_report
-from pipeline.io import atomic_path
-from pipeline.model.checkpoint import load_dynamics, load_model
+from pipeline.model.checkpoint import load_dynamics, load_model, skill_horizon
 from pipeline.paths import Paths
 from pipeline.segments import load_segments
-from stages.report import write_report
+from stages.report import report_files, write_report
 
 log = logging.getLogger(__name__)
 
@@ -35,8 +34,8 @@ def recording_path(paths: Paths) -> Path:
 
 
 def write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
-    """Rows of equal keys as a CSV file with a header, atomically."""
-    with atomic_path(path) as tmp, tmp.open("w", newline="") as f:
+    """Rows of equal keys as a CSV file with a header (`path`: the output's staged temporary)."""
+    with path.open("w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
@@ -46,6 +45,11 @@ def run(params: Params, paths: Paths) -> dict[str, Any]:
     """Run the validation of `data/models/<name>/` on `data/segments/<name>/`; return the report."""
     started = time.monotonic()
     cfg, name = params.validation, params.ingest.name
+    plots = paths.live("validate")
+    csvs = {"errors": plots / "error_vs_horizon.csv", "ends": plots / "end_positions.csv"}
+    recording = [recording_path(paths)] if cfg.record_starts else []
+    outputs = [*csvs.values(), *recording, *report_files(paths, "validate")]
+    paths.check(outputs)  # before the rollouts: a path that cannot be written fails now
     segments = load_segments(paths.existing(paths.segments(name)))
     info = segments.info
     spec = make_env_spec(info.env_id, info.env_kwargs)
@@ -56,22 +60,22 @@ def run(params: Params, paths: Paths) -> dict[str, Any]:
     check_same_environment(info, meta, f"the skill model in {paths.model(name)}")
     check_same_environment(info, dyn_meta, f"the dynamics model in {dynamics_path}")
 
-    horizon = int(meta["window"]) - 1
+    horizon = skill_horizon(meta, paths.existing(paths.model(name)))
     with torch_threads(1 if device.type == "cpu" else None):
         result = run_open_loop(model, dynamics, segments, spec, horizon, cfg, device)
     norm = (model.state_mean.cpu().numpy(), model.state_std.cpu().numpy())
     report = open_loop_report(result, spec, info.state_names, norm)
 
-    plots = paths.live("validate")
-    write_csv(plots / "error_vs_horizon.csv", error_table(report))
-    write_csv(plots / "end_positions.csv", end_position_table(result, list(spec.goal_dims)))
-    if cfg.record_starts:
-        from pipeline.viz.validate import write_recording
+    with paths.staged(outputs) as out:  # all of them or none (no CSVs beside an old report)
+        write_csv(out.file(csvs["errors"]), error_table(report))
+        write_csv(out.file(csvs["ends"]), end_position_table(result, list(spec.goal_dims)))
+        if cfg.record_starts:
+            from pipeline.viz.validate import write_recording
 
-        write_recording(recording_path(paths), result, spec, cfg.record_starts)
-    report["disturbance"] = Pushes.of_dataset(info.generator).to_dict()  # as simulated
-    report["timing"]["total_s"] = time.monotonic() - started
-    write_report(paths, "validate", report)
+            write_recording(out.file(recording_path(paths)), result, spec, cfg.record_starts)
+        report["disturbance"] = Pushes.of_dataset(info.generator).to_dict()  # as simulated
+        report["timing"]["total_s"] = time.monotonic() - started
+        write_report(paths, "validate", report, out)
     _log(report)
     return report
 

@@ -130,7 +130,7 @@ def test_an_os_error_is_one_line_naming_the_path(tmp_path):
     (tmp_path / "data").write_text("a file, not a folder\n")
     args = ["ingest", "--params", str(tmp_path / "params.yaml"), "--data", str(tmp_path / "data")]
     line = _one_line_error(runner.invoke(app, args))
-    assert str(tmp_path / "data") in line and "Not a directory" in line
+    assert str(tmp_path / "data") in line and "is a file, and a folder is needed" in line
 
 
 def test_os_errors_name_the_file_asked_for_not_the_hidden_temporary():

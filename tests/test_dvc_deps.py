@@ -15,6 +15,8 @@ PACKAGES = ("pipeline", "stages")
 # Plumbing that cannot change what a stage computes: not required in deps and not followed.
 # config.py: the params themselves are tracked by each stage's `params:` (and params.yaml equals
 # the config defaults, tests/test_config.py); its imports are for validating names.
+# readback.py: the checks of files read back, which pass a valid file's values on unchanged or
+# refuse the file.
 NOT_RESULTS = {
     "pipeline/__init__.py",
     "stages/__init__.py",
@@ -23,6 +25,7 @@ NOT_RESULTS = {
     "pipeline/io.py",
     "pipeline/devices.py",
     "pipeline/config.py",
+    "pipeline/readback.py",
 }
 
 
@@ -74,7 +77,12 @@ def code_of(stage_file: Path) -> set[Path]:
     return seen
 
 
-PIPELINES = ("dvc.yaml", "experiments/dvc.yaml")  # the main job and the paper's experiments
+PIPELINES = (
+    "dvc.yaml",
+    "experiments/dvc.yaml",
+    "experiments/ogbench/dvc.yaml",
+    "experiments/antmaze/dvc.yaml",
+)  # the main job, the paper's experiments, OGBench's point mazes, the ant mazes
 
 
 def _stages() -> dict[str, dict]:
@@ -111,13 +119,29 @@ def test_the_scan_follows_imports_into_packages():
     assert {"stages/train.py", "pipeline/training/loop.py", "pipeline/model/__init__.py"} <= code
 
 
+def _entry_point(cmd: str) -> Path:
+    """The file a stage's command runs: `oposm <stage>` -> stages/<stage>.py, `python <script>`
+    -> the script."""
+    words = cmd.split()
+    if words[0] == "oposm":
+        return ROOT / "stages" / f"{words[1]}.py"
+    assert words[0] == "python" and words[1].endswith(".py"), f"unknown command: {cmd}"
+    return ROOT / words[1]
+
+
+def test_the_entry_points_are_found():
+    stages = _stages()
+    assert _entry_point(stages["dvc.yaml:train"]["cmd"]) == ROOT / "stages/train.py"
+    report = _entry_point(stages["experiments/ogbench/dvc.yaml:report"]["cmd"])
+    assert report == ROOT / "scripts/ogbench_point_report.py"
+
+
 @pytest.mark.parametrize("stage", sorted(_stages()))
 def test_stage_deps_cover_the_code_it_runs(stage):
     spec = _stages()[stage]
     deps = [d if isinstance(d, str) else next(iter(d)) for d in spec["deps"]]
-    module = spec["cmd"].split()[1]  # oposm <stage>
     missing = []
-    for path in sorted(code_of(ROOT / "stages" / f"{module}.py")):
+    for path in sorted(code_of(_entry_point(spec["cmd"]))):
         rel = path.relative_to(ROOT).as_posix()
         if not any(rel == d or rel.startswith(d.rstrip("/") + "/") for d in deps):
             missing.append(rel)

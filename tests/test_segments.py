@@ -137,8 +137,8 @@ def _edit_meta(directory, edit):
     [
         (lambda m: m.pop("window"), "segments.json has no 'window' entry"),
         (lambda m: m.pop("stats"), "segments.json has no 'stats' entry"),
-        (lambda m: m.update(window="forty"), "malformed entry"),
-        (lambda m: m["dataset"].update(colour="red"), "malformed entry"),
+        (lambda m: m.update(window="forty"), "bad value for 'window'"),
+        (lambda m: m["dataset"].update(colour="red"), "unknown key 'dataset.colour'"),
         (lambda m: m["dataset"].update(state_names=["x", "y", "vx"]), "states have shape"),
         (lambda m: m["stats"].update(action_std=[1.0]), "action stats have shape"),
         (lambda m: m.update(window=10_000), "windows of 10000 states run past"),

@@ -45,7 +45,7 @@ def test_stability_table_marks_each_run_against_its_recipe(tmp_path):
     first = report["runs"][0]
     assert first["published_step"] == 5000 and first["random_goal_success"] == 0.97
     text = out.with_suffix(".md").read_text()
-    row = "| new | 0 | 5000 | 1.400 | False | 97 % [92, 99], 97/100 | 50 % [24, 76], 5/10 | yes |"
+    row = "| new | 0 | 5000 | 1.400 | False | 97 [92, 99], 97/100 | 50 [24, 76], 5/10 | yes |"
     assert row in text
     assert "| old | 1 | not run yet |" in text
     assert "| new | 4 of 4 | 2 |" in text

@@ -10,38 +10,49 @@ mean head of the squashed Gaussian policy (stable-baselines3's `predict(determin
 
 from __future__ import annotations
 
-import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
+from pydantic import ConfigDict, with_config
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 from torch import nn
 
 from pipeline.errors import UserError
 from pipeline.io import atomic_path, write_json
+from pipeline.readback import Finite, Size, read_json, validated
 
 FORMAT = "oposm-direction-actor"
 VERSION = 1
 _ACTIVATIONS: dict[str, type[nn.Module]] = {"gelu": nn.GELU, "relu": nn.ReLU}
 
 
+@with_config(ConfigDict(extra="forbid"))  # read back from the JSON: an unknown key is an error
 @dataclass
 class ActorSpec:
     """Architecture and spaces of a `DirectionActor`; with `info` it is the actor's JSON file."""
 
-    obs_dim: int
-    action_dim: int
-    hidden: list[int]
-    activation: str
-    action_low: list[float]
-    action_high: list[float]
+    obs_dim: Size
+    action_dim: Size
+    hidden: list[Size]
+    activation: Literal["gelu", "relu"]
+    action_low: list[Finite]
+    action_high: list[Finite]
     info: dict[str, Any] = field(default_factory=dict)
     """Provenance and quality: robot, observation layout, command, seed, steps, SAC params,
     measured quality (free-form JSON)."""
+
+    def __post_init__(self) -> None:
+        for name in ("action_low", "action_high"):
+            if len(getattr(self, name)) != self.action_dim:
+                raise ValueError(
+                    f"{name} has {len(getattr(self, name))} values for {self.action_dim} dims"
+                )
+        if any(lo >= hi for lo, hi in zip(self.action_low, self.action_high, strict=True)):
+            raise ValueError("every action_low must be below its action_high")
 
 
 class DirectionActor(nn.Module):
@@ -107,20 +118,14 @@ def read_spec(path: str | Path) -> ActorSpec:
     meta_path = path if path.suffix == ".json" else json_path(path)
     if not meta_path.exists():
         raise UserError(f"actor description {meta_path} not found (it goes beside the weights)")
-    try:
-        meta = json.loads(meta_path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise UserError(f"{meta_path} is not valid JSON ({exc})") from exc
+    fix = "ship the actor again (`oposm expert train`) or restore the file"
+    meta = read_json(meta_path, fix)
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise UserError(f"{meta_path} is not a direction-actor description (format {FORMAT!r})")
     if meta.get("version") != VERSION:
         raise UserError(f"{meta_path}: version {meta.get('version')!r}, this code reads {VERSION}")
-    try:
-        spec = ActorSpec(**{k: v for k, v in meta.items() if k not in ("format", "version")})
-        DirectionActor(spec)
-    except (TypeError, ValueError, RuntimeError) as exc:
-        raise UserError(f"{meta_path}: bad actor description ({exc})") from exc
-    return spec
+    fields = {k: v for k, v in meta.items() if k not in ("format", "version")}
+    return validated(ActorSpec, fields, meta_path, fix)
 
 
 def load_actor(path: str | Path) -> DirectionActor:

@@ -61,25 +61,43 @@ def check_task(name: str) -> None:
         raise UserError(f"unknown task {name!r}; use one of: {', '.join(TASKS)}")
 
 
-def check_goal(layout: dict[str, Any], goal: np.ndarray) -> tuple[int, int]:
-    """The free cell holding `goal [x, y]`.
+def check_goal(
+    layout: dict[str, Any], goal: np.ndarray, key: str = "deploy.goal"
+) -> tuple[int, int]:
+    """The free cell holding `goal [x, y]` (the param `key`, for messages).
 
     Raises:
-        UserError: the goal is outside the maze or inside a wall.
+        UserError: the goal is outside the maze or inside a wall; the message names `key` and
+            the center of the nearest free cell to set instead.
     """
     goal = np.asarray(goal, dtype=np.float64)
     if goal.shape != (2,) or not np.all(np.isfinite(goal)):
-        raise UserError(f"a goal is a finite [x, y] pair, got {goal.tolist()}")
+        raise UserError(f"{key}: a goal is a finite [x, y] pair, got {goal.tolist()}")
     xmin, xmax, ymin, ymax = layout["bounds"]
     if not (xmin < goal[0] < xmax and ymin < goal[1] < ymax):
         raise UserError(
-            f"goal {goal.tolist()} is outside the maze (x in ({xmin:g}, {xmax:g}), "
-            f"y in ({ymin:g}, {ymax:g}))"
+            f"{key} {goal.tolist()} is outside the maze (x in ({xmin:g}, {xmax:g}), "
+            f"y in ({ymin:g}, {ymax:g})); {_nearest_free(layout, goal, key)}"
         )
     row, col = layout_cell(layout, float(goal[0]), float(goal[1]))
     if layout["maze_map"][row][col] == 1:
-        raise UserError(f"goal {goal.tolist()} is inside a wall (cell row {row}, column {col})")
+        raise UserError(
+            f"{key} {goal.tolist()} is inside a wall (cell row {row}, column {col}); "
+            f"{_nearest_free(layout, goal, key)}"
+        )
     return row, col
+
+
+def _nearest_free(layout: dict[str, Any], goal: np.ndarray, key: str) -> str:
+    """'the nearest free cell is ...: set key=[x, y]' for a goal that is not in a free cell."""
+    centers = np.asarray(layout["free_cell_centers"], dtype=np.float64)
+    nearest = centers[np.argmin(np.linalg.norm(centers - goal, axis=1))]
+    x, y = (round(float(v), 4) for v in nearest)
+    row, col = layout_cell(layout, x, y)
+    return (
+        f"the nearest free cell (row {row}, column {col}) is centered at [{x:g}, {y:g}]: set "
+        f"{key}=[{x:g},{y:g}]"
+    )
 
 
 def train_locations(segments: Segments, dims: tuple[int, ...]) -> np.ndarray:

@@ -23,6 +23,7 @@ from torch import nn
 
 from pipeline.model.networks import GaussianMLP
 from pipeline.model.skill_model import diag_normal
+from pipeline.readback import PositiveFinite, Size
 
 
 @dataclass(frozen=True)
@@ -37,10 +38,10 @@ class DynamicsConfig:
         min_std: Floor added to the predicted std (normalized units).
     """
 
-    state_dim: int
-    action_dim: int
-    hidden: int
-    min_std: float
+    state_dim: Size
+    action_dim: Size
+    hidden: Size
+    min_std: PositiveFinite
 
 
 class DynamicsModel(nn.Module):

@@ -20,6 +20,7 @@ from torch import nn
 
 from pipeline.model.networks import GaussianMLP
 from pipeline.model.skill_model import diag_normal
+from pipeline.readback import Count, PositiveFinite, Size
 
 
 @dataclass(frozen=True)
@@ -36,15 +37,19 @@ class PolicyConfig:
         learned_std: Predict the std; False: fixed at 1 (OGBench's GCBC).
     """
 
-    state_dim: int
-    action_dim: int
-    goal_dims: tuple[int, ...]
-    hidden: int
-    min_std: float
+    state_dim: Size
+    action_dim: Size
+    goal_dims: tuple[Count, ...]
+    hidden: Size
+    min_std: PositiveFinite
     learned_std: bool
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "goal_dims", tuple(int(d) for d in self.goal_dims))
+        if any(not 0 <= d < self.state_dim for d in self.goal_dims):
+            raise ValueError(
+                f"goal_dims {list(self.goal_dims)} must be state dims (0 to {self.state_dim - 1})"
+            )
 
 
 class GaussianPolicy(nn.Module):

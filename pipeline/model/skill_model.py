@@ -14,6 +14,7 @@ from torch import nn
 from torch.distributions import Independent, Normal
 
 from pipeline.model.networks import GaussianHead, GaussianMLP
+from pipeline.readback import Finite, PositiveFinite, Size
 
 
 @dataclass(frozen=True)
@@ -42,14 +43,14 @@ class SkillModelConfig:
             planner runs) keep the paper's.
     """
 
-    state_dim: int
-    action_dim: int
-    z_dim: int
-    hidden: int
+    state_dim: Size
+    action_dim: Size
+    z_dim: Size
+    hidden: Size
     tawm_shared_std: bool
-    min_std: float
-    action_low: tuple[float, ...] | None = None
-    action_high: tuple[float, ...] | None = None
+    min_std: PositiveFinite
+    action_low: tuple[Finite, ...] | None = None
+    action_high: tuple[Finite, ...] | None = None
     policy_layer_norm: bool = False
 
     def __post_init__(self) -> None:

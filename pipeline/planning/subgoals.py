@@ -2,8 +2,8 @@
 
 The planner's cost is the distance to the goal. Where a wall stands between the agent and the
 goal and the way round is longer than a plan of L skills reaches, that cost has a local minimum on
-the near side of the wall: every replan presses towards it (results/ogbench.md, tasks 3-5). The
-graph gives the planner a nearer target that leads round.
+the near side of the wall: every replan presses towards it (results/ogbench-point.md, tasks 3-5).
+The graph gives the planner a nearer target that leads round.
 
 - **Nodes:** the occupied cells of a grid (side `cell`) over the goal dimensions of the train
   split's states, each at the mean position of its states.

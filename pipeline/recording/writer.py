@@ -81,6 +81,8 @@ def write_dataset(
     episodes: Iterable[Episode],
     *,
     chunk_size: int = 1024 * 1024,
+    shown_as: str | Path | None = None,
+    source: str | Path | None = None,
 ) -> WriteSummary:
     """Write `episodes` to the MCAP file `path`, atomically, checking each one first.
 
@@ -95,17 +97,22 @@ def write_dataset(
         info: Dataset description, stored as the `oposm.dataset` metadata.
         episodes: Episodes 0, 1, 2, ... in order.
         chunk_size: Uncompressed bytes of messages per MCAP chunk (the unit of reading and CRC).
+        shown_as: The file messages name (default `path`): the destination, when `path` is a
+            temporary that will be renamed onto it.
+        source: The file the episodes come from (an import), named by messages about bad
+            episodes; None for generated data.
 
     Raises:
         UserError: An invalid `info` or episode (names the file, episode, field and step), or no
             episodes at all. Nothing is left at `path` (nor a temporary file).
     """
     path = Path(path)
+    name = shown_as if shown_as is not None else path
     try:
         check_info(info)
         info_record = encode_info(info)
     except ValueError as exc:
-        raise UserError(f"cannot write {path}: {exc}") from exc
+        raise UserError(f"cannot write {name}: {exc}") from exc
     lengths: list[int] = []
     with atomic_path(path) as tmp, tmp.open("wb") as stream:
         writer = Writer(
@@ -117,12 +124,19 @@ def write_dataset(
             try:
                 checked = check_episode(episode, info, position, last_time)
             except ValueError as exc:
-                raise UserError(f"cannot write {path}: {exc}; fix the source data") from exc
+                if source is None:
+                    raise UserError(f"cannot write {name}: {exc}; fix the source data") from exc
+                raise UserError(
+                    f"{source}: {exc}; fix the source data ({name} was not written)"
+                ) from exc
             _write_episode(writer, checked)
             lengths.append(len(checked))
             last_time = float(checked.time[-1])
         if not lengths:
-            raise UserError(f"cannot write {path}: no episodes; the source produced nothing")
+            raise UserError(
+                f"cannot write {name}: no episodes; the source "
+                f"{f'{source} ' if source else ''}produced nothing"
+            )
         writer.add_metadata(EPISODES_RECORD, encode_episodes(lengths))
         writer.finish()
     return WriteSummary(path, len(lengths), sum(lengths), path.stat().st_size)

@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from pydantic import BaseModel, ConfigDict
 from stable_baselines3 import SAC
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.noise import ActionNoise
@@ -46,6 +47,7 @@ from pipeline.envs.ant_expert import ActorSpec, DirectionActor, save_actor
 from pipeline.errors import UserError
 from pipeline.expert_config import SACParams, SACPhase
 from pipeline.io import atomic_dir
+from pipeline.readback import READBACK_CONFIG, Count, read_json, validated
 
 log = logging.getLogger(__name__)
 
@@ -286,13 +288,24 @@ def _checkpoint_on_signals(checkpointer: _Checkpointer) -> Iterator[None]:
             signal.signal(s, handler)
 
 
+class _SavedPhase(BaseModel):
+    model_config = ConfigDict(extra="allow")  # the rest of the phase, compared as written
+    from_step: Count
+
+
+class _SavedState(BaseModel):
+    """The resume folder's state.json, as `_load` reads it back."""
+
+    model_config = READBACK_CONFIG
+    steps: Count
+    sac: dict[str, Any]
+    phases: list[_SavedPhase] | None = None
+
+
 def _load(cfg: SACParams, env: Any, folder: Path) -> SAC:
     """SAC and replay buffer from a resume folder written with the same (non-budget) params."""
-    try:
-        state = json.loads((folder / _STATE).read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        msg = f"resume state {folder / _STATE} is unreadable ({exc}); delete {folder}"
-        raise UserError(msg) from exc
+    path, fix = folder / _STATE, f"delete {folder} to start afresh"
+    state = validated(_SavedState, read_json(path, fix), path, fix).model_dump()
     if state.get("sac") != _fingerprint(cfg):
         changed = sorted(
             k for k, v in _fingerprint(cfg).items() if state.get("sac", {}).get(k) != v
@@ -303,7 +316,8 @@ def _load(cfg: SACParams, env: Any, folder: Path) -> SAC:
         )
     steps = int(state["steps"])
     # written before phases existed: one phase, no noise, no upside-down end
-    done = _past_phases(state.get(_PHASES, [SACPhase().model_dump()]), steps)
+    saved = state[_PHASES] if state[_PHASES] is not None else [SACPhase().model_dump()]
+    done = _past_phases(saved, steps)
     if done != _past_phases(cfg.model_dump()[_PHASES], steps):
         raise UserError(
             f"{folder} is at step {steps}, collected with sac.phases {done}; a resumed run may "

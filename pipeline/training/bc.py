@@ -7,7 +7,7 @@ negative log-likelihood, best validation NLL kept.
   is N, the goal is the state at a step drawn uniformly from t + 1 .. N (OGBench:
   `round(min(t + 1, N) * d + N * (1 - d))`, d ~ U[0, 1)), reduced to the goal dims (x, y).
   With `gcbc.normalize: false` it sees raw states, goals and actions, and `gcbc.keep: last` keeps
-  the final parameters, as OGBench's GCBC does (see results/ogbench.md on why it matters).
+  the final parameters, as OGBench's GCBC does (results/ogbench-gcbc-check.md: why it matters).
 """
 
 from __future__ import annotations

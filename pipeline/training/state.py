@@ -11,17 +11,27 @@ from __future__ import annotations
 import json
 import logging
 import pickle  # only for its error type: torch.load(weights_only=True) on a bad file
+import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
 import torch
+from pydantic import BaseModel, Field
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
 from pipeline.errors import UserError
 from pipeline.io import atomic_dir, recover_dir
 from pipeline.model.skill_model import SkillModel
+from pipeline.readback import (
+    READBACK_CONFIG,
+    Count,
+    Finite,
+    NonNegativeFinite,
+    read_json,
+    validated,
+)
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +60,28 @@ class Progress:
         """(step, value) of `criterion`'s best validation; (-1, inf) before the first."""
         entry = self.best.get(criterion)
         return (-1, float("inf")) if entry is None else (int(entry["step"]), entry["value"])
+
+
+class _SavedBest(BaseModel):
+    step: Count
+    value: Finite
+
+
+class _SavedProgress(BaseModel):
+    """`Progress` as state.json holds it (read back: checked before it is used)."""
+
+    model_config = READBACK_CONFIG
+    step: Count = 0
+    elapsed_s: NonNegativeFinite = 0.0
+    best: dict[str, _SavedBest] = Field(default_factory=dict)
+    evals_above_best: Count = 0
+    diverged_step: Count | None = None
+
+
+class _SavedState(BaseModel):
+    model_config = READBACK_CONFIG
+    fingerprint: str
+    progress: _SavedProgress
 
 
 def save_state(
@@ -96,14 +128,15 @@ def read_progress(directory: Path, fingerprint: str) -> Progress | None:
     meta_path = directory / "state.json"
     if not meta_path.exists():
         return None
-    try:
-        meta: dict[str, Any] = json.loads(meta_path.read_text())
-        if meta.get("fingerprint") != fingerprint:
-            log.info("previous training state in %s is for other params; starting over", directory)
-            return None
-        return Progress(**meta["progress"])
-    except (ValueError, KeyError, TypeError) as exc:
-        raise _corrupt(directory, f"state.json: {exc}") from exc
+    fix = f"delete {directory} to start over"
+    meta: Any = read_json(meta_path, fix)
+    if not isinstance(meta, dict):
+        raise UserError(f"{meta_path} is not a JSON object; it is damaged: {fix}")
+    if meta.get("fingerprint") != fingerprint:
+        log.info("previous training state in %s is for other params; starting over", directory)
+        return None
+    saved = validated(_SavedState, meta, meta_path, fix).progress
+    return Progress(**saved.model_dump())
 
 
 def load_state(
@@ -120,23 +153,33 @@ def load_state(
     if progress is None:
         return None
     device = next(model.parameters()).device
+    fix = f"delete {directory} to start over"
+    weights_path, optim_path = directory / "model.safetensors", directory / "optim.pt"
     try:
-        model.load_state_dict(load_file(directory / "model.safetensors", device=str(device)))
-        optim = torch.load(directory / "optim.pt", weights_only=True, map_location=device)
+        weights = load_file(weights_path, device=str(device))
+    except (OSError, SafetensorError) as exc:
+        raise UserError(f"{weights_path} is damaged or not a safetensors file; {fix}") from exc
+    try:
+        with warnings.catch_warnings():  # torch warns about pickle protocols before failing
+            warnings.simplefilter("ignore")
+            optim = torch.load(optim_path, weights_only=True, map_location=device)
+    except (OSError, RuntimeError, ValueError, EOFError, pickle.UnpicklingError) as exc:
+        # torch's own message suggests an unsafe load (weights_only=False): never pass it on.
+        raise UserError(
+            f"{optim_path} is damaged, or not the optimizer state `oposm train` writes (only "
+            f"tensors and numbers); {fix}"
+        ) from exc
+    try:
+        model.load_state_dict(weights)
         for name, optimizer in optimizers.items():
             _load_optimizer(optimizer, optim["optimizers"][name])
         for name, module in (extra or {}).items():
             module.load_state_dict(optim["extra"][name])
         torch.set_rng_state(optim["torch_rng"].cpu())
         generator.set_state(optim["sampler_rng"].cpu())
-    except (
-        OSError,
-        RuntimeError,
-        ValueError,
-        KeyError,
-        SafetensorError,
-        pickle.UnpicklingError,
-    ) as exc:
+    except KeyError as exc:
+        raise _corrupt(directory, f"optim.pt has no entry {exc}") from exc
+    except (RuntimeError, ValueError, TypeError, AttributeError, IndexError) as exc:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise _corrupt(directory, first) from exc
     if "cuda_rng" in optim and torch.cuda.is_available():

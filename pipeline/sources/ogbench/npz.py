@@ -46,14 +46,81 @@ def maze_of_file(path: Path) -> str | None:
     return f"{match.group(1)}-v0" if match else None
 
 
+_NOT_NPZ = "an OGBench dataset is a .npz: a zip of numpy arrays"
+
+
 def _load(path: Path) -> dict[str, np.ndarray]:
     if not path.is_file():
         raise UserError(f"OGBench file {path} not found (set ingest.ogbench.path)")
+    with path.open("rb") as f:
+        head = f.read(8)
+    if head.startswith(b"\x89HDF"):
+        raise UserError(
+            f"{path} is an HDF5 file, not a .npz ({_NOT_NPZ}); a D4RL .hdf5 imports with "
+            "ingest.source=d4rl"
+        )
+    if head.startswith(b"\x93NUMPY"):
+        raise UserError(f"{path} is a single numpy array (.npy), not a .npz ({_NOT_NPZ})")
+    if not head.startswith(b"PK"):
+        raise UserError(f"{path} is not a .npz file ({_NOT_NPZ}); it is damaged or another kind")
     try:
-        with np.load(path) as f:
+        with np.load(path, allow_pickle=False) as f:
             return {k: f[k] for k in f.files}
-    except (OSError, ValueError, zipfile.BadZipFile) as exc:
-        raise UserError(f"{path} is not a numpy .npz file ({exc})") from exc
+    except ValueError as exc:  # numpy's text suggests allow_pickle: never pass it on
+        raise UserError(
+            f"{path} holds Python objects (pickled arrays), which OGBench data never does: it "
+            "is not an OGBench dataset"
+        ) from exc
+    except (OSError, zipfile.BadZipFile, EOFError) as exc:
+        raise UserError(f"{path} is a damaged or truncated .npz ({_NOT_NPZ})") from exc
+
+
+def _misfit(arrays: dict[str, np.ndarray], spec: OGBenchMazeSpec) -> str | None:
+    """Why the data cannot be from the maze of `spec` (observation or action size, positions in
+    its walls), or None when they fit."""
+    obs, actions = arrays["observations"], arrays["actions"]
+    for key, values, size in (
+        ("observation", obs, spec.state_dim),
+        ("action", actions, spec.action_dim),
+    ):
+        got = int(np.prod(values.shape[1:]))
+        if got != size:
+            return f"{got} values per {key}, {spec.env_id} has {size}"
+    try:
+        _check_maze(np.asarray(obs, np.float64)[:, :2], "", spec)
+    except UserError:
+        return f"positions lie in walls of or outside {spec.env_id}"
+    return None
+
+
+def _check_unnamed(arrays: dict[str, np.ndarray], where: str, spec: OGBenchMazeSpec) -> None:
+    """A file whose name names no maze is imported as `ingest.ogbench.env_id`: only if its data
+    fit that maze; else the message names the mazes they fit."""
+    usable = all(
+        k in arrays and arrays[k].dtype.kind in "biuf" and arrays[k].ndim >= 1 and len(arrays[k])
+        for k in ("observations", "actions")
+    )
+    if not usable:
+        return  # `_check_arrays` says what is missing
+    why = _misfit(arrays, spec)
+    if why is None:
+        log.info(
+            "%s names no maze: imported as ingest.ogbench.env_id %s (its sizes and positions fit)",
+            where,
+            spec.env_id,
+        )
+        return
+    fit = [
+        m for m in OGBENCH_MAZES if m != spec.env_id and _misfit(arrays, ogbench_spec(m)) is None
+    ]
+    start = (
+        f"{where}: its name names no maze, and its data are not from ingest.ogbench.env_id "
+        f"{spec.env_id} ({why})"
+    )
+    if not fit:
+        raise UserError(f"{start}; they fit none of {', '.join(OGBENCH_MAZES)}")
+    choice = fit[0] if len(fit) == 1 else f"one of {', '.join(fit)}"
+    raise UserError(f"{start}; they fit {choice}: set ingest.ogbench.env_id={fit[0]}")
 
 
 def _check_arrays(arrays: dict[str, np.ndarray], where: str, spec: OGBenchMazeSpec) -> None:
@@ -159,6 +226,8 @@ def read_ogbench(
     loaded = []
     for f in files:
         arrays = _load(f)
+        if named is None:
+            _check_unnamed(arrays, str(f), spec)
         _check_arrays(arrays, str(f), spec)
         _check_maze(np.asarray(arrays["observations"], np.float64)[:, :2], str(f), spec)
         loaded.append((arrays, _episode_ends(arrays["terminals"], str(f))))
