@@ -18,45 +18,35 @@ import sys
 from pathlib import Path
 
 from pipeline.errors import UserError
+from pipeline.evaluation import paper
 from pipeline.io import atomic_path, write_json
 from stages.results_common import code_version, read
 
 ROOT = Path(__file__).resolve().parents[1]
 
-# OGBench's paper, navigate datasets, success % (mean +- std over 8 seeds), as quoted in
-# docs/references.md.
+# The published numbers, from their one place (pipeline/evaluation/paper.py), as printed here:
+# OGBench's navigate table (percent mean, std over its seeds), the paper's tables 1 and 4.
 PUBLISHED = {
-    "medium": {
-        "GCBC": (29, 4),
-        "GCIVL": (72, 8),
-        "GCIQL": (71, 4),
-        "QRL": (88, 3),
-        "CRL": (95, 1),
-        "HIQL": (96, 1),
-    },
-    "large": {
-        "GCBC": (24, 2),
-        "GCIVL": (16, 5),
-        "GCIQL": (34, 4),
-        "QRL": (75, 6),
-        "CRL": (83, 4),
-        "HIQL": (91, 2),
-    },
+    maze: {
+        method: (round(100 * mean), round(100 * std))
+        for method, (mean, std) in paper.OGBENCH[f"antmaze-{maze}-navigate"].items()
+    }
+    for maze in ("medium", "large")
 }
-# The paper (D4RL antmaze-*-diverse, its own protocols): table 1 fixed goal, table 4 random goals.
 PAPER = {
-    "medium": {"table 1 (fixed goal)": "78.29 +- 4.32", "table 4 (random goals)": "72.6 +- 4.7"},
-    "large": {"table 1 (fixed goal)": "70.2 +- 4.6", "table 4 (random goals)": "65.07 +- 4.96"},
+    maze: {
+        f"table {n} ({what})": f"{100 * m:.4g} +- {100 * sd:.3g}"
+        for n, what, table in ((1, "fixed goal", paper.TABLE1), (4, "random goals", paper.TABLE4))
+        for m, sd in [table[f"antmaze-{maze}-diverse"]["oposm"]]
+    }
+    for maze in ("medium", "large")
 }
 
 
 MASS_RUN = "mass"  # runs named mass<factor> (`deploy.mass_scale`): the figure-5 sweep
-# The paper's figure 5 (antmaze-large, geom density x0.2 ... x5), success as fractions.
-FIG5_FACTORS = [0.2, 0.5, 1.0, 2.0, 3.0, 4.0, 5.0]
-PAPER_FIG5 = {
-    "oposm": [35, 51, 70, 81.6, 73, 68.6, 60.7],
-    "expert": [20, 49.3, 80, 80, 89.3, 36, 0],
-}
+# The paper's figure 5 (antmaze-large, geom density x0.2 ... x5), success in percent.
+FIG5_FACTORS = list(paper.FIGURE5_FACTORS)
+PAPER_FIG5 = {k: [round(100 * v, 1) for v in paper.FIGURE5[k]] for k in ("oposm", "expert")}
 
 
 def _pct(rate: float | None, lo: float | None = None, hi: float | None = None) -> str:
