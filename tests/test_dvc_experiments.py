@@ -264,3 +264,10 @@ def test_two_queued_experiments_run_on_two_workers_and_share_the_run_cache(tmp_p
     assert (
         repo / "data/experiments/ogbench/large/demos/ogbench-pointmaze-large-navigate.mcap"
     ).exists()
+
+
+def test_committed_ant_lock_matches_params_code_and_results():
+    """The ant mazes' pipeline ran as committed: its lock holds every stage with the params, code
+    and command it ran with, and results/antmaze.* as its report stage wrote them."""
+    problems = _stale("experiments/antmaze/dvc.yaml")
+    assert not problems, "experiments/antmaze/dvc.yaml: " + "; ".join(problems[:20])
