@@ -136,3 +136,36 @@ def train_updater(model, **train):
     from pipeline.training.updaters import updater_for
 
     return updater_for(TrainParams(**train), model)
+
+
+def kill_an_ingest_while_it_writes(root, name: str):
+    """Start `oposm ingest` of a big dataset `name` in `root` (the pipeline's data/demos there),
+    SIGKILL it once it is writing, and return the demos folder: what a killed run leaves."""
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    import yaml
+
+    params = Path(root) / "params.yaml"
+    params.write_text(
+        yaml.safe_dump({"ingest": {"name": name, "episodes": 2000, "episode_steps": 1000}})
+    )
+    cli = Path(__file__).resolve().parents[1] / "cli.py"
+    proc = subprocess.Popen(
+        [sys.executable, str(cli), "ingest", "-p", str(params)],
+        cwd=root,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    demos = Path(root) / "data" / "demos"
+    deadline = time.monotonic() + 60
+    while not any(demos.glob(".tmp-*")) and time.monotonic() < deadline:
+        time.sleep(0.05)  # wait until it is writing
+    time.sleep(0.5)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert any(demos.glob(".tmp-*")), "the run was killed before it started writing"
+    return demos

@@ -16,10 +16,6 @@ import errno
 import fcntl
 import json
 import os
-import signal
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import h5py
@@ -27,7 +23,13 @@ import numpy as np
 import pytest
 import torch
 import yaml
-from factories import make_info, make_skill_episodes, one_line_error, skill_model_config
+from factories import (
+    kill_an_ingest_while_it_writes,
+    make_info,
+    make_skill_episodes,
+    one_line_error,
+    skill_model_config,
+)
 from typer.testing import CliRunner
 
 from cli import _os_error_message, app
@@ -482,23 +484,7 @@ def test_a_successful_run_removes_only_the_stale_temporaries_of_its_own_outputs(
 
 @pytest.mark.slow
 def test_a_sigkilled_ingest_leaves_temporaries_the_next_run_removes(tmp_path):
-    big = {"ingest": {"name": "tiny", "episodes": 2000, "episode_steps": 1000}}
-    (tmp_path / "params.yaml").write_text(yaml.safe_dump(big))  # the pipeline's: data/demos
-    cli = Path(__file__).resolve().parents[1] / "cli.py"
-    proc = subprocess.Popen(
-        [sys.executable, str(cli), "ingest", "-p", str(tmp_path / "params.yaml")],
-        cwd=tmp_path,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
-    demos = tmp_path / "data/demos"
-    deadline = time.monotonic() + 60
-    while not any(demos.glob(".tmp-*")) and time.monotonic() < deadline:
-        time.sleep(0.05)
-    time.sleep(0.5)
-    proc.send_signal(signal.SIGKILL)
-    proc.wait()
-    assert any(demos.glob(".tmp-*")), "the run was killed before it started writing"
+    demos = kill_an_ingest_while_it_writes(tmp_path, "tiny")  # the pipeline's data/demos
     (tmp_path / "p.yaml").write_text(yaml.safe_dump(TINY))
     result = runner.invoke(
         app, ["ingest", "-p", str(tmp_path / "p.yaml"), "--data", str(tmp_path / "data")]

@@ -96,30 +96,9 @@ def test_segment_without_ingest_says_what_to_run(tmp_path):
 
 def test_ingest_killed_midway_leaves_no_dataset(tmp_path):
     """SIGKILL during generation: the destination never exists half-written."""
-    import signal
-    import subprocess
-    import sys
-    import time
-    from pathlib import Path
+    from factories import kill_an_ingest_while_it_writes
 
-    (tmp_path / "params.yaml").write_text(
-        yaml.safe_dump({"ingest": {"name": "big", "episodes": 2000, "episode_steps": 1000}})
-    )
-    cli = Path(__file__).resolve().parents[1] / "cli.py"
-    proc = subprocess.Popen(
-        [sys.executable, str(cli), "ingest", "-p", str(tmp_path / "params.yaml")],
-        cwd=tmp_path,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
-    demos = tmp_path / "data" / "demos"
-    deadline = time.monotonic() + 60
-    while not any(demos.glob(".tmp-*")) and time.monotonic() < deadline:
-        time.sleep(0.05)  # wait until it is writing
-    time.sleep(0.5)
-    proc.send_signal(signal.SIGKILL)
-    proc.wait()
-    assert any(demos.glob(".tmp-*")), "the run was killed before it started writing"
+    demos = kill_an_ingest_while_it_writes(tmp_path, "big")
     assert not (demos / "big.mcap").exists()
 
 

@@ -211,17 +211,22 @@ def test_every_readme_command_parses_and_its_params_validate(args, monkeypatch):
         load_params(ROOT / params, options["set_"] or [])
 
 
-def test_every_command_the_readme_names_exists():
-    mentions = readme_command_mentions()
-    assert ["export", "lerobot"] in mentions, mentions
+def _assert_commands_exist(mentions: list[list[str]], where: str) -> None:
+    """Each `oposm <words>` that `where` names is a command of the CLI (not only a group)."""
     for words in mentions:
         command = typer.main.get_command(app)
         for word in words:
             if not _group(command):
                 break
             command = command.get_command(command.context_class(command), word)
-            assert command is not None, f"README: `oposm {shlex.join(words)}`: no {word!r}"
-        assert not _group(command), f"README: `oposm {shlex.join(words)}` names only a group"
+            assert command is not None, f"{where}: `oposm {shlex.join(words)}`: no {word!r}"
+        assert not _group(command), f"{where}: `oposm {shlex.join(words)}` names only a group"
+
+
+def test_every_command_the_readme_names_exists():
+    mentions = readme_command_mentions()
+    assert ["export", "lerobot"] in mentions, mentions
+    _assert_commands_exist(mentions, "README")
 
 
 def test_every_override_in_the_readme_is_a_param_with_a_valid_value():
@@ -344,14 +349,7 @@ def test_every_docs_command_parses_and_its_params_validate(page, args, monkeypat
 
 @pytest.mark.parametrize("page", list(PAGES))
 def test_every_command_a_page_names_exists(page):
-    for words in readme_command_mentions(PAGES[page]):
-        command = typer.main.get_command(app)
-        for word in words:
-            if not _group(command):
-                break
-            command = command.get_command(command.context_class(command), word)
-            assert command is not None, f"{page}: `oposm {shlex.join(words)}`: no {word!r}"
-        assert not _group(command), f"{page}: `oposm {shlex.join(words)}` names only a group"
+    _assert_commands_exist(readme_command_mentions(PAGES[page]), page)
 
 
 @pytest.mark.parametrize("page", list(PAGES))
