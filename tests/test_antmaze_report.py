@@ -1,171 +1,150 @@
-"""scripts/antmaze_report.py: the ant-maze report from a run's reports, and its verdicts."""
+"""The ant-maze report (pipeline/reporting/antmaze.py, scripts/antmaze_report.py): both protocols
+from one run, its verdicts by the common rules, the JSON a script can check."""
 
-import importlib.util
 import json
 import shutil
+import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
+from pipeline.errors import UserError
+from pipeline.reporting import antmaze
+from pipeline.reporting.common import FAILS, HOLDS, INCONCLUSIVE, rate
+
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "scripts"))
+import antmaze_report  # noqa: E402
 
 
-def _module():
-    spec = importlib.util.spec_from_file_location(
-        "antmaze_report", ROOT / "scripts/antmaze_report.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def _row(successes: int, n: int, within: int | None = None) -> dict:
+    r = rate(successes, n)
+    row = {"episodes": n, "successes": successes, "success_rate": r["rate"],
+           "success_ci95_low": r["ci95"][0], "success_ci95_high": r["ci95"][1], "fallen": 1}  # fmt: skip
+    if within is not None:  # a 2000-step run: success within OGBench's 1000 steps as well
+        row["within_steps"] = {"1000": {"successes": within}}
+    return row
 
 
-def _rate(successes: int, n: int) -> dict:
-    from pipeline.evaluation.proportions import wilson_interval
-
-    lo, hi = wilson_interval(successes, n)
-    return {
-        "episodes": n,
-        "successes": successes,
-        "success_rate": successes / n,
-        "success_ci95_low": lo,
-        "success_ci95_high": hi,
-    }
+def _deploy(agent: str, successes: list[int], n: int = 50, within: list[int] | None = None,
+            max_steps: int = 2000, mass: float = 1.0) -> dict:  # fmt: skip
+    within = within or successes
+    tasks = {f"ogbench-task{i + 1}": _row(s, n, w if max_steps > 1000 else None)
+             for i, (s, w) in enumerate(zip(successes, within, strict=True))}  # fmt: skip
+    tasks["ogbench"] = _row(sum(successes), n * 5, sum(within) if max_steps > 1000 else None)
+    return {"tasks": [*tasks], "episodes_per_task": n, "max_steps": max_steps,
+            "mass_scale": mass, "by_agent": {agent: tasks}}  # fmt: skip
 
 
-def _deploy(successes: list[int], n: int = 50) -> dict:
-    tasks = {f"ogbench-task{i + 1}": _rate(s, n) for i, s in enumerate(successes)}
-    tasks["ogbench"] = _rate(sum(successes), n * len(successes))
-    return {
-        "tasks": [*tasks],
-        "episodes_per_task": n,
-        "max_steps": 1000,
-        "by_agent": {"oposm": tasks, "gcbc": tasks},
-    }
+def _write(root: Path, rel: str, body: dict) -> None:
+    path = root / rel
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(body))
 
 
-def test_verdict_compares_the_interval_with_the_best_published_method():
-    m = _module()
-    assert "**holds**" in m.verdict("medium", _deploy([50, 50, 50, 50, 50]))  # [99, 100] > 97
-    assert "**does not hold**" in m.verdict("medium", _deploy([20, 20, 20, 20, 20]))
-    assert "**inconclusive**" in m.verdict("medium", _deploy([48, 48, 48, 48, 48]))
-    assert "HIQL 96" in m.verdict("medium", _deploy([48] * 5))
-    assert "CRL" not in m.verdict("large", _deploy([48] * 5))  # large's best is HIQL 91
-    assert m.verdict("medium", None) is None
+def _maze(root: Path) -> Path:
+    _write(root, "reports/ingest/report.json", {"episodes": 4, "steps": 4004, "fallen_steps": 0,
+           "fallen_episodes": 0, "goals_per_1000_steps": 4.5})  # fmt: skip
+    _write(root, "reports/validate/report.json", {"starts": 100, "prior": {"skills_1": {
+        "steps": 9, "tawm_error_mean": 0.3, "single_step_error_mean": 0.4,
+        "no_model_error_mean": 1.2, "tawm_within_1sigma": 0.7}}, "posterior": {"skills_1": {
+        "steps": 9, "replay_error_mean": 0.26, "tawm_recorded_error_mean": 0.32,
+        "no_model_recorded_error_mean": 1.16}}})  # fmt: skip
+    # OPOSM: 49 of 50 per task within 2000 steps, 40 of them within 1000
+    _write(root, "runs/oposm/reports/deploy/report.json",
+           _deploy("oposm", [49] * 5, within=[40] * 5))  # fmt: skip
+    _write(root, "runs/gcbc/reports/deploy/report.json", _deploy("gcbc", [2] * 5))
+    old = _deploy("oposm", [10] * 5, n=10, max_steps=1000)  # a 1000-step run: OGBench's only
+    _write(root, "runs/old/reports/deploy/report.json", old)
+    rg = {"tasks": ["random_goal"], "episodes_per_task": 50, "max_steps": 2000,
+          "by_agent": {"oposm": {"random_goal": _row(45, 50, 44) | {"final_distance_mean": 0.8}}}}
+    _write(root, "runs/random-goal/reports/deploy/report.json", rg)  # fmt: skip
+    for factor, s in ((1.0, 9), (0.5, 5), (2.0, 7)):  # figure 5: oposm drops less than expert
+        sweep = _deploy("oposm", [s] * 5, n=10, max_steps=1000, mass=factor)
+        sweep["by_agent"] |= _deploy("expert", [9 if factor == 1.0 else 1] * 5, n=10,
+                                     max_steps=1000)["by_agent"]  # fmt: skip
+        _write(root, f"runs/mass{factor:g}/reports/deploy/report.json", sweep)
+    return root
 
 
-def test_report_reads_a_runs_reports_and_writes_markdown_and_json(tmp_path, monkeypatch):
-    run = tmp_path / "ant"
-    reports = run / "reports"
-    for stage, body in {
-        "ingest": {
-            "episodes": 4,
-            "steps": 4004,
-            "fallen_steps": 0,
-            "fallen_episodes": 0,
-            "goals_per_1000_steps": 4.5,
-        },
-        "deploy": _deploy([40, 41, 42, 43, 44]),
-    }.items():
-        (reports / stage).mkdir(parents=True)
-        (reports / stage / "report.json").write_text(json.dumps(body))
-    llp = _deploy([10] * 5, n=10)
-    llp["by_agent"] = {"llp": llp["by_agent"]["oposm"]}
-    (run / "runs/llp/reports/deploy").mkdir(parents=True)
-    (run / "runs/llp/reports/deploy/report.json").write_text(json.dumps(llp))
-    plain = _deploy([2] * 5, n=10)  # the same agent in another setting: a row of its own
-    (run / "runs/plain/reports/deploy").mkdir(parents=True)
-    (run / "runs/plain/reports/deploy/report.json").write_text(json.dumps(plain))
-    plain["by_agent"]["oposm"]["ogbench"]["fallen"] = 7  # a newer deploy counts falls
-    (run / "runs/plain/reports/deploy/report.json").write_text(json.dumps(plain))
-    tuning = {"tasks": ["random_goal"], "episodes_per_task": 50, "max_steps": 1000,
-              "by_agent": {"oposm": {"random_goal": _rate(40, 50)}}}  # fmt: skip
-    (run / "runs/rg/reports/deploy").mkdir(parents=True)  # a choice on training-data goals
-    (run / "runs/rg/reports/deploy/report.json").write_text(json.dumps(tuning))
-    for factor, successes in ((1.0, [8] * 5), (0.5, [4] * 5), (2.0, [6] * 5)):  # figure 5
-        sweep = _deploy(successes, n=10)
-        sweep["mass_scale"] = factor
-        sweep["by_agent"]["expert"] = _deploy([8] * 5, n=10)["by_agent"]["oposm"]
-        (run / f"runs/mass{factor:g}/reports/deploy").mkdir(parents=True)
-        (run / f"runs/mass{factor:g}/reports/deploy/report.json").write_text(json.dumps(sweep))
-    commands = tmp_path / "commands.json"
-    commands.write_text(
-        json.dumps(
-            {
-                "medium": {
-                    "commands": ["oposm ingest -p params-ogbench-antmaze-medium.yaml"],
-                    "notes": ["trained on another machine"],
-                }
-            }
-        )
-    )
+def test_protocols_take_ogbench_from_the_first_1000_steps_of_a_longer_run():
+    long = antmaze.protocols(_row(49, 50, within=40), max_steps=2000)
+    assert long["ogbench"]["successes"] == 40 and long["paper"]["successes"] == 49
+    short = antmaze.protocols(_row(30, 50), max_steps=1000)
+    assert short["ogbench"]["successes"] == 30 and short["paper"] is None
+
+
+def test_collect_renders_both_protocols_the_ladder_and_each_verdict(tmp_path):
+    maze = antmaze.collect(_maze(tmp_path / "medium"))
+    agents = {a["agent"]: a for a in maze["agents"]}
+    assert set(agents) == {"oposm", "gcbc", "oposm (run old)"}  # mass runs and random goals apart
+    assert agents["oposm"]["tasks"]["ogbench"]["ogbench"]["successes"] == 200
+    assert agents["oposm"]["tasks"]["ogbench"]["paper"]["successes"] == 245
+    assert agents["oposm (run old)"]["tasks"]["ogbench"]["paper"] is None
+    assert set(maze["mass_sweep"]["oposm"]) == {"0.5", "1.0", "2.0"}
+    checks = {c["claim"].split(" (")[0]: c for c in antmaze.verdicts("medium", maze)}
+    # rule 3 against OGBench's table: 80 % [74, 85] is below HIQL's 96 +- 1
+    top = checks["OPOSM is above every published method on antmaze-medium-navigate"]
+    assert top["verdict"] == FAILS and "HIQL 96 ± 1" in top["detail"]
+    # rule 2 against the paper's table 1 (78.3 %): 98 % of 250 under the paper's protocol holds
+    assert checks["OPOSM reaches the paper's table 1"]["verdict"] == HOLDS
+    assert checks["OPOSM reaches the paper's table 4"]["verdict"] == HOLDS  # 90 % vs 72.6 %
+    # rule 5: off x1 pooled, oposm 60 of 100 against the expert's 10 of 100
+    fig5 = checks["OPOSM keeps more of its success under mass changes than the expert"]
+    assert fig5["verdict"] == HOLDS and fig5["interval"][0] > 0
+    results = antmaze.build({"medium": maze}, {"steps": 5}, ["cmd a"], {"commit": "abc",
+                            "machine": "test box", "dvc": None})  # fmt: skip
+    antmaze.write(tmp_path / "out", results)
+    text = (tmp_path / "out/antmaze.md").read_text()
+    assert "| oposm | 50 | 80 [67, 89] | 80 [67, 89] |" in text
+    assert text.index("| oposm | 50") < text.index("| oposm (run old)") < text.index("| gcbc | 50")
+    assert "| **80 [75, 84]** | 98 [95, 99] | 1 |" in text  # OGBench's overall, the paper's, falls
+    assert "| 1 | 9 | 0.26 | 0.32 | 1.16 |" in text  # skill fidelity, executed vs TAWM vs none
+    assert "| x0.5 | 50 [37, 63] | 10 [4, 21] | 51 | 49 |" in text  # beside the paper's fig. 5
+    assert "code at commit abc" in text and "test box" in text and "cmd a" in text
+    saved = json.loads((tmp_path / "out/antmaze.json").read_text())
+    flat = {(r["agent"], r["protocol"]): r for r in saved["runs"]}
+    assert flat[("oposm", "paper")]["tasks"]["ogbench"] == {"episodes": 250, "successes": 245}
+    assert ("oposm (run old)", "paper") not in flat
+    assert saved["published"]["antmaze-large-navigate"]["HIQL"] == [91, 2]
+
+
+def test_verdicts_are_inconclusive_near_the_best_published_and_absent_without_runs(tmp_path):
+    root = tmp_path / "m"
+    _write(root, "runs/oposm/reports/deploy/report.json", _deploy("oposm", [48] * 5))
+    checks = antmaze.verdicts("medium", antmaze.collect(root))
+    assert checks[0]["verdict"] == INCONCLUSIVE  # 96 [93, 98] vs HIQL 96 +- 1
+    assert antmaze.verdicts("medium", antmaze.collect(tmp_path / "empty")) == []
+
+
+def test_script_writes_both_mazes_and_keep_holds_a_maze_whose_root_is_gone(tmp_path):
     out = tmp_path / "results"
-    monkeypatch.setattr(
-        sys,
-        "argv",
-        [
-            "x",
-            "--maze",
-            f"medium={run}",
-            "--commands",
-            str(commands),
-            "--out",
-            str(out),
-            "--machine",
-            "test box",
-        ],
-    )
-    _module().main()
-    text = (out / "antmaze.md").read_text()
-    assert "| oposm | 50 | 80 (67-89) |" in text and "| gcbc | 50 |" in text
-    assert "| llp | 10 | 100 (72-100) |" in text  # an ad-hoc run's report joins the table
-    assert "| oposm (run plain) | 10 |" in text
-    assert "| **20 (11-33)** | 7 |" in text and "| **84 (79-88)** | – |" in text  # fell
-    assert "(run rg)" not in text  # a run on other tasks stays out of OGBench's table
-    assert "4 episodes, 4004 steps" in text and "HIQL 96 +- 1" in text
-    assert "oposm ingest -p params-ogbench-antmaze-medium.yaml" in text
-    assert "Machine: test box. Commit: " in text
-    # the development metric (training-data goals) gets a line of its own
-    assert "(`random_goal`, run `rg`, the development metric): oposm 80 (67-89) % of 50" in text
-    assert "| x0.5 | 40 (28-54) | 40 (28-54) | 80 (67-89) | 51 | 49.3 |" in text  # its table
-    assert "oposm 62 %" in text and "expert 100 %" in text  # (40 + 60) / 2 of 80 % at x1
-    assert "than the expert policy): **does not hold** (shares 62 % vs 100 %" in text
-    assert "(run mass" not in text  # sweep runs stay out of the success table
-    assert "- trained on another machine" in text
-    results = json.loads((out / "antmaze.json").read_text())
-    assert results["mazes"]["medium"]["train"] is None  # not run: reported as missing, not faked
-    assert "does not hold" in results["verdicts"]["medium"]
-    # --keep: a second maze joins; the first stays as it was, even with its data root gone.
-    shutil.move(run, tmp_path / "gone")
-    (tmp_path / "gone" / "reports" / "ingest").rename(tmp_path / "gone" / "reports" / "x")
-    monkeypatch.setattr(sys, "argv", ["x", "--maze", f"large={tmp_path / 'gone'}", "--keep",
-                                      "--out", str(out)])  # fmt: skip
-    _module().main()
-    results = json.loads((out / "antmaze.json").read_text())
-    assert set(results["mazes"]) == {"medium", "large"}
-    assert results["mazes"]["medium"]["ingest"]["steps"] == 4004  # kept from the first run
-    assert results["mazes"]["large"]["ingest"] is None
-    assert set(results["verdicts"]) == {"medium", "large"}
-    assert results["machine"] == "test box"  # kept with the mazes
-    assert "4 episodes, 4004 steps" in (out / "antmaze.md").read_text()
+    notes = tmp_path / "notes.json"
+    notes.write_text(json.dumps({"medium": ["trained elsewhere"]}))
+    medium = _maze(tmp_path / "medium")
+    antmaze_report.main(["--maze", f"medium={medium}", "--notes", str(notes), "--out", str(out)])
+    assert "- trained elsewhere" in (out / "antmaze.md").read_text()
+    shutil.rmtree(medium)
+    large = _maze(tmp_path / "large")
+    antmaze_report.main(["--maze", f"large={large}", "--keep", "--out", str(out)])
+    saved = json.loads((out / "antmaze.json").read_text())
+    assert set(saved["mazes"]) == {"medium", "large"}
+    assert saved["mazes"]["medium"]["ingest"]["steps"] == 4004  # kept from the first report
+    assert {r["maze"] for r in saved["runs"]} == {"medium", "large"}
+    with pytest.raises(UserError, match="MAZE=DATA_ROOT"):
+        antmaze_report.main(["--maze", "huge=x", "--out", str(out)])
 
 
 def test_a_corrupt_report_is_a_one_line_error_naming_it(tmp_path):
-    import subprocess
-
     bad = tmp_path / "ant/reports/ingest/report.json"
     bad.parent.mkdir(parents=True)
     bad.write_text("{not json")
     result = subprocess.run(
-        [
-            sys.executable,
-            str(ROOT / "scripts/antmaze_report.py"),
-            "--maze",
-            f"medium={tmp_path / 'ant'}",
-            "--out",
-            str(tmp_path / "results"),
-        ],
-        capture_output=True,
-        text=True,
-    )
+        [sys.executable, str(ROOT / "scripts/antmaze_report.py"), "--maze",
+         f"medium={tmp_path / 'ant'}", "--out", str(tmp_path / "results")],
+        capture_output=True, text=True,
+    )  # fmt: skip
     assert result.returncode == 1 and "Traceback" not in result.stderr
     assert result.stderr.strip().count("\n") == 0 and str(bad) in result.stderr
     assert not (tmp_path / "results").exists()  # nothing half-written

@@ -211,6 +211,19 @@ def kept_share(by_factor: Mapping[Any, Mapping[str, Any]], nominal: float = 1.0)
     return sum(others) / len(others) / base if base and others else None
 
 
+# --- what ran -----------------------------------------------------------------------------------
+
+
+def lock_commands(lock: Path, exclude: str = "report") -> list[str]:
+    """The command of every stage a dvc.lock recorded (`exclude` left out), as
+    `<cmd>   # <stage>`, in the lock's order."""
+    try:
+        stages = (yaml.safe_load(lock.read_text()) or {}).get("stages", {})
+    except FileNotFoundError:
+        return []
+    return [f"{entry['cmd']}   # {name}" for name, entry in stages.items() if name != exclude]
+
+
 # --- stamp --------------------------------------------------------------------------------------
 
 _CODE = ("*.py", "pyproject.toml", "uv.lock")  # what DVC runs do not rewrite (locks, metrics)

@@ -37,6 +37,7 @@ from pipeline.reporting.common import (
     percent,
     points,
     rate_of,
+    lock_commands,
     read,
     stamp_text,
 )
@@ -264,16 +265,6 @@ def write_dataset_rows(plan: dict[str, Any], root: str, repo: Path = Path(".")) 
     path.parent.mkdir(parents=True, exist_ok=True)
     write_json(path, dataset_rows(plan, root, repo))
     return path
-
-
-def lock_commands(lock: Path, exclude: str = "report") -> list[str]:
-    """The command of every stage a dvc.lock recorded (`exclude` left out), as
-    `<cmd>   # <stage>`, in the lock's order."""
-    try:
-        stages = (yaml.safe_load(lock.read_text()) or {}).get("stages", {})
-    except FileNotFoundError:
-        return []
-    return [f"{entry['cmd']}   # {name}" for name, entry in stages.items() if name != exclude]
 
 
 def report_from_rows(

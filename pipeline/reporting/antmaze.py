@@ -1,0 +1,458 @@
+"""results/antmaze.md + .json: OPOSM on OGBench's ant mazes, beside OGBench's published table and
+the paper's tables 1 and 4 (and figure 5 when a mass sweep ran), on `pipeline.reporting.common`'s
+format, verdict rules and stamp, with the published numbers of `pipeline.evaluation.paper`.
+
+One data root per maze (`experiments/antmaze/dvc.yaml`: `data/experiments/antmaze/<maze>/`): the
+data (ingest, segment), training, validation (the ladder's skill fidelity and prior-skill open
+loop), and deploy runs under `runs/<run>/`: one per agent on OGBench's five tasks, one on goals
+from the training data (`random_goal`, the development metric), and runs named `mass<factor>`
+(figure 5: `deploy.mass_scale`).
+
+Two protocols from one run. The deploys run the paper code's episodes (`deploy.max_steps: 2000`,
+success when the ant comes within 0.5 of the goal); OGBench's protocol (1000 steps, 0.5) is the
+same episodes' success within their first 1000 steps (an episode runs the same up to a limit
+whatever its own limit: `pipeline.evaluation.stats.success_within`). A run of 1000 steps gives
+OGBench's protocol only.
+
+Verdicts, each with its rule of `pipeline.reporting.common`:
+
+- "OPOSM is above every published method" (OGBench's protocol): rule 3, `above_every`, against
+  each method's mean over OGBench's 8 seeds.
+- "OPOSM reaches the paper's table 1" (the paper's protocol) and "... table 4" (goals from the
+  training data): rule 2, `reproduces`, the paper's rate taken as `paper.EPISODES_MAZE2D` episodes
+  (it states no count for the ant; the maze2d count, the lower end). The paper ran D4RL's
+  antmaze-*-diverse data and its own goals: a reference, not the same benchmark.
+- Figure 5, "OPOSM keeps more of its success under mass changes than the expert": rule 5,
+  `versus` on each agent's success pooled over the perturbed factors (`off_nominal`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from pipeline.evaluation import paper
+from pipeline.io import atomic_path, write_json
+from pipeline.reporting.common import (
+    FAILS,
+    HOLDS,
+    INCONCLUSIVE,
+    above_every,
+    kept_share,
+    mean_std,
+    off_nominal,
+    percent,
+    points,
+    rate,
+    read,
+    reproduces,
+    stamp_text,
+    versus,
+)
+
+MAZES = ("medium", "large", "giant")
+TASKS = [f"ogbench-task{i}" for i in range(1, 6)]
+OVERALL = "ogbench"
+OGBENCH_STEPS = 1000  # OGBench's episode limit on its ant mazes
+MASS_RUN = "mass"  # runs named mass<factor> (`deploy.mass_scale`): the figure-5 sweep
+AGENT_ORDER = ("oposm", "llp", "gcbc", "expert")  # the rows' order; other agents after
+
+
+def ogbench_name(maze: str) -> str:
+    return f"antmaze-{maze}-navigate"
+
+
+def paper_name(maze: str) -> str:
+    return f"antmaze-{maze}-diverse"
+
+
+# --- reading the runs ---------------------------------------------------------------------------
+
+
+def protocols(row: Mapping[str, Any], max_steps: int) -> dict[str, dict[str, Any] | None]:
+    """One deploy task row -> its `rate` under OGBench's protocol (the first 1000 steps) and under
+    the paper's (the whole episode, when it ran longer than 1000 steps; else None)."""
+    n = row["episodes"]
+    if max_steps <= OGBENCH_STEPS:
+        return {"ogbench": rate(row["successes"], n), "paper": None}
+    within = row["within_steps"][str(OGBENCH_STEPS)]
+    return {"ogbench": rate(within["successes"], n), "paper": rate(row["successes"], n)}
+
+
+def _runs(root: Path) -> list[tuple[str, dict[str, Any]]]:
+    paths = [root / "reports" / "deploy" / "report.json"]
+    paths += sorted((root / "runs").glob("*/reports/deploy/report.json"))
+    found = []
+    for path in paths:
+        report = read(path)
+        if report:
+            name = path.parents[2].name if path.parents[2] != root else "deploy"
+            found.append((name, report))
+    return found
+
+
+def _agents(runs: list[tuple[str, dict[str, Any]]]) -> list[dict[str, Any]]:
+    """Every agent of every run on OGBench's tasks (mass sweeps aside): its rates per task under
+    both protocols, its falls; an agent met again is named after its run."""
+    rows, seen = [], set()
+    # a run named after its agent (runs/oposm/) first: that agent's row; others after, by name
+    named_first = sorted(runs, key=lambda r: (r[0] not in r[1].get("by_agent", {}), r[0]))
+    for run, report in named_first:
+        if run.startswith(MASS_RUN) or OVERALL not in report.get("tasks", []):
+            continue
+        for agent, by_task in report["by_agent"].items():
+            name = agent if agent not in seen else f"{agent} (run {run})"
+            seen.add(agent)
+            tasks = {t: protocols(by_task[t], report["max_steps"]) for t in [*TASKS, OVERALL]
+                     if t in by_task}  # fmt: skip
+            rows.append({"agent": name, "run": run, "max_steps": report["max_steps"],
+                         "episodes_per_task": report["episodes_per_task"],
+                         "fallen": by_task[OVERALL].get("fallen"), "tasks": tasks})  # fmt: skip
+    order = {agent: i for i, agent in enumerate(AGENT_ORDER)}
+    return sorted(rows, key=lambda r: order.get(r["agent"].split(" (run ")[0], len(order)))
+
+
+def _random_goal(runs: list[tuple[str, dict[str, Any]]]) -> list[dict[str, Any]]:
+    """Runs on goals from the training data (`deploy.tasks: [random_goal]`): each agent's rate
+    under both protocols, its final distance and falls."""
+    rows = []
+    for run, report in runs:
+        if report.get("tasks") != ["random_goal"]:
+            continue
+        for agent, by_task in report["by_agent"].items():
+            row = by_task["random_goal"]
+            rows.append({"run": run, "agent": agent, **protocols(row, report["max_steps"]),
+                         "final_distance_mean": row.get("final_distance_mean"),
+                         "fallen": row.get("fallen")})  # fmt: skip
+    return rows
+
+
+def _mass_sweep(runs: list[tuple[str, dict[str, Any]]]) -> dict[str, dict[str, Any]] | None:
+    """agent -> mass factor (a string) -> its pooled `rate` on OGBench's tasks, OGBench's protocol."""
+    sweep: dict[str, dict[str, Any]] = {}
+    for run, report in runs:
+        if not run.startswith(MASS_RUN):
+            continue
+        for agent, by_task in report["by_agent"].items():
+            rates = protocols(by_task[OVERALL], report["max_steps"])
+            sweep.setdefault(agent, {})[str(float(report["mass_scale"]))] = rates["ogbench"]
+    for agent in sweep:
+        sweep[agent] = dict(sorted(sweep[agent].items(), key=lambda kv: float(kv[0])))
+    return sweep or None
+
+
+def collect(root: Path) -> dict[str, Any]:
+    """One maze's data root: its stage reports, its agents, goals from the data, mass sweep."""
+    reports = root / "reports"
+    out: dict[str, Any] = {"data_root": root.as_posix()}
+    for stage in ("ingest", "segment", "dynamics", "validate"):
+        out[stage] = read(reports / stage / "report.json")
+    out["train"] = read(reports / "train" / "metrics.json")
+    runs = _runs(root)
+    out["agents"] = _agents(runs)
+    out["random_goal"] = _random_goal(runs)
+    out["mass_sweep"] = _mass_sweep(runs)
+    return out
+
+
+# --- verdicts -----------------------------------------------------------------------------------
+
+
+def _oposm(maze: Mapping[str, Any]) -> dict[str, Any] | None:
+    return next((a for a in maze["agents"] if a["agent"] == "oposm"), None)
+
+
+def verdicts(name: str, maze: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """Every claim this maze's runs can judge: its words, the verdict, the interval (points)."""
+    out = []
+    oposm = _oposm(maze)
+    table = paper.OGBENCH.get(ogbench_name(name))
+    if oposm and table:
+        ours = oposm["tasks"][OVERALL]["ogbench"]
+        word, method, interval = above_every(ours, table, paper.OGBENCH_SEEDS)
+        out.append({"claim": f"OPOSM is above every published method on {ogbench_name(name)} "
+                    "(OGBench's protocol)", "verdict": word, "interval": interval,
+                    "detail": f"OPOSM {percent(ours['rate'], *ours['ci95'])} vs {method} "
+                    f"{mean_std(*table[method])} (the method deciding it)"})  # fmt: skip
+    for number, what, published, ours in (
+        (1, "its fixed goal", paper.TABLE1, oposm and oposm["tasks"][OVERALL]["paper"]),
+        (4, "random goals", paper.TABLE4,
+         next((r["paper"] for r in maze["random_goal"] if r["agent"] == "oposm"), None)),
+    ):  # fmt: skip
+        row = published.get(paper_name(name))
+        if not (ours and row):
+            continue
+        mean, _ = row["oposm"]
+        word, interval = reproduces(ours, mean, paper.EPISODES_MAZE2D)
+        out.append({"claim": f"OPOSM reaches the paper's table {number} ({paper_name(name)}, "
+                    f"{what}; the paper's protocol)", "verdict": word, "interval": interval,
+                    "detail": f"OPOSM {percent(ours['rate'], *ours['ci95'])} vs the paper's "
+                    f"{percent(mean)} (as {paper.EPISODES_MAZE2D} episodes)"})  # fmt: skip
+    sweep = maze.get("mass_sweep") or {}
+    if "oposm" in sweep and "expert" in sweep:
+        a, b = off_nominal(sweep["oposm"]), off_nominal(sweep["expert"])
+        if a and b:
+            word, interval = versus(a, b)
+            out.append({"claim": "OPOSM keeps more of its success under mass changes than the "
+                        "expert (paper figure 5)", "verdict": word, "interval": interval,
+                        "detail": f"off x1, pooled: OPOSM {percent(a['rate'], *a['ci95'])} vs "
+                        f"expert {percent(b['rate'], *b['ci95'])}"})  # fmt: skip
+    return out
+
+
+# --- rendering ----------------------------------------------------------------------------------
+
+
+def _cell(r: Mapping[str, Any] | None) -> str:
+    return "–" if r is None else percent(r["rate"], *r["ci95"], digits=0)
+
+
+def _agent_rows(agents: list[dict[str, Any]]) -> list[str]:
+    lines = ["| agent | episodes per task | " + " | ".join(f"task {i}" for i in range(1, 6))
+             + " | overall, OGBench (1000 steps) | overall, paper (2000 steps) | fell |",
+             "|---" * 10 + "|"]  # fmt: skip
+    for a in agents:
+        t = a["tasks"]
+        cells = [_cell(t[k]["ogbench"]) if k in t else "–" for k in TASKS]
+        overall = t[OVERALL]
+        fell = "–" if a["fallen"] is None else str(a["fallen"])
+        lines.append(f"| {a['agent']} | {a['episodes_per_task']} | " + " | ".join(cells)
+                     + f" | **{_cell(overall['ogbench'])}** | {_cell(overall['paper'])} "
+                     f"| {fell} |")  # fmt: skip
+    return lines
+
+
+def _expert_check_row(expert: Mapping[str, Any], maze: str) -> str | None:
+    check = expert.get("quality", {}).get("mazes", {}).get(f"antmaze-{maze}-v0")
+    if not check:
+        return None
+    cells = [_cell(rate(t["successes"], t["episodes"])) for t in check["tasks"]]
+    o = check["overall"]
+    n = check["tasks"][0]["episodes"]
+    return (f"| expert, noise-free (`oposm expert check`) | {n} | " + " | ".join(cells)
+            + f" | **{_cell(rate(o['successes'], o['episodes']))}** | – | – |")  # fmt: skip
+
+
+def _ladder(maze: Mapping[str, Any]) -> list[str]:
+    lines = []
+    validate = maze.get("validate")
+    if validate:
+        replay = [(k, v) for k, v in validate.get("posterior", {}).items()
+                  if "replay_error_mean" in v]  # fmt: skip
+        if replay:
+            lines += ["(a) Skill fidelity: the posterior's skills of held-out recorded windows, "
+                      "executed by the policy in MuJoCo from the recorded start; mean x-y "
+                      "distance to the recorded end (m), against the TAWM's prediction and "
+                      "against no model (the end = the start):", "",
+                      "| skills | steps | executed | TAWM | no model |", "|---|---|---|---|---|"]
+            lines += [f"| {k.split('_')[1]} | {v['steps']} | {v['replay_error_mean']:.2f} | "
+                      f"{v['tawm_recorded_error_mean']:.2f} | "
+                      f"{v['no_model_recorded_error_mean']:.2f} |" for k, v in replay]
+            lines.append("")
+        lines += [f"(b) Open loop with prior skills from {validate['starts']} held-out starts: "
+                  "mean x-y error of the predicted end (m); paper figure 4 is antmaze-large:", "",
+                  "| skills | steps | TAWM | single-step model | no model | TAWM within 1 sigma |",
+                  "|---|---|---|---|---|---|"]  # fmt: skip
+        lines += [f"| {k.split('_')[1]} | {v['steps']} | {v['tawm_error_mean']:.2f} | "
+                  f"{v['single_step_error_mean']:.2f} | {v['no_model_error_mean']:.2f} | "
+                  f"{percent(v['tawm_within_1sigma'], digits=0)} % |"
+                  for k, v in validate["prior"].items()]  # fmt: skip
+        lines.append("")
+    for r in maze.get("random_goal", []):
+        dist = r["final_distance_mean"]
+        lines.append(f"(c) Goals from the training data (`random_goal`, run `{r['run']}`, the "
+                     f"development metric): {r['agent']} {_cell(r['ogbench'])} % within 1000 "
+                     f"steps, {_cell(r['paper'])} % within 2000, of {r['ogbench']['episodes']} "
+                     "episodes; mean final distance "
+                     + ("–" if dist is None else f"{dist:.2f} m")
+                     + f"; fell in {'–' if r['fallen'] is None else r['fallen']}.")  # fmt: skip
+    return lines + ([""] if maze.get("random_goal") else [])
+
+
+def _data_lines(maze: Mapping[str, Any]) -> list[str]:
+    lines = []
+    ingest, train = maze.get("ingest"), maze.get("train")
+    if ingest:
+        lines.append(f"- Data: {ingest['episodes']:.0f} episodes, {ingest['steps']:.0f} steps; "
+                     f"the ant fallen or upside down in {ingest.get('fallen_steps', 0):.0f} steps "
+                     f"({ingest.get('fallen_episodes', 0):.0f} episodes); "
+                     f"{ingest.get('goals_per_1000_steps', float('nan')):.1f} goals reached per "
+                     "1000 steps.")  # fmt: skip
+    if train:
+        val = train["val"]
+        lines.append(f"- Training (EM): {train['steps']} steps ({train['steps_per_s']:.2f} "
+                     f"steps/s, {train['wall_s'] / 60:.0f} min on {train.get('device')}); "
+                     f"published checkpoint by `{train['select']}` at step {train['best_step']}; "
+                     f"validation s_T NLL {val['st_nll']:.2f} (posterior skill), "
+                     f"{val['st_nll_prior']:.2f} (prior skills); KL(q || prior) "
+                     f"{val.get('kl', float('nan')):.1f} nats at the last evaluation.")
+    return lines
+
+
+def _mass_rows(sweep: Mapping[str, Mapping[str, Any]]) -> list[str]:
+    agents = list(sweep)
+    factors = sorted({f for a in agents for f in sweep[a]}, key=float)
+    lines = ["| mass factor | " + " | ".join(agents) + " | paper: OPOSM | paper: expert |",
+             "|---" * (len(agents) + 3) + "|"]  # fmt: skip
+    for f in factors:
+        cells = [_cell(sweep[a].get(f)) for a in agents]
+        i = paper.FIGURE5_FACTORS.index(float(f)) if float(f) in paper.FIGURE5_FACTORS else None
+        cells += ["–" if i is None else percent(paper.FIGURE5[k][i], digits=0)
+                  for k in ("oposm", "expert")]  # fmt: skip
+        lines.append(f"| x{float(f):g} | " + " | ".join(cells) + " |")
+    kept = {a: k for a in agents if (k := kept_share(_as_rates(sweep[a]))) is not None}
+    if kept:
+        lines += ["", "Mean success over the perturbed factors as a share of the success at x1 "
+                  "(descriptive): " + ", ".join(f"{a} {percent(k, digits=0)} %"
+                                                for a, k in kept.items()) + "."]  # fmt: skip
+    return lines
+
+
+def _as_rates(by_factor: Mapping[str, Any]) -> dict[str, Any]:
+    return {f: r for f, r in by_factor.items() if r is not None}
+
+
+def _published_line(name: str) -> str:
+    table = paper.OGBENCH.get(ogbench_name(name))
+    parts = []
+    if table:
+        parts.append(f"OGBench's paper ({ogbench_name(name)}, {paper.OGBENCH_SEEDS} seeds, its "
+                     "protocol): " + ", ".join(f"{m} {mean_std(*v)}" for m, v in table.items()))
+    own = [f"table {n} ({what}) {mean_std(*t[paper_name(name)]['oposm'], digits=1)}"
+           for n, what, t in ((1, "fixed goal", paper.TABLE1), (4, "random goals", paper.TABLE4))
+           if paper_name(name) in t]  # fmt: skip
+    if own:
+        parts.append(f"the paper (D4RL {paper_name(name)}, its own goals and protocol): "
+                     + ", ".join(own))  # fmt: skip
+    return ("Published: " + "; ".join(parts) + ".") if parts else "No published number quoted."
+
+
+_WORDS = {HOLDS: "holds", FAILS: "does not hold", INCONCLUSIVE: "inconclusive"}
+
+
+def render(results: Mapping[str, Any]) -> str:
+    expert = results["expert"]
+    made = ("Made by `uv run dvc repro experiments/antmaze/dvc.yaml` (its commands at the end)"
+            if results["stamp"].get("dvc") else
+            "Made by `scripts/antmaze_report.py` from the mazes' data roots")  # fmt: skip
+    lines = [
+        "# OGBench ant mazes: OPOSM beside OGBench's published table and the paper's",
+        "",
+        f"{made}; {stamp_text(results['stamp'])}. Every setting: `params-ogbench-antmaze-<maze>"
+        ".yaml` (an overlay of `params.yaml`); every number: `antmaze.json`.",
+        "",
+        "## Verdicts",
+        "",
+    ]
+    for maze, checks in results["verdicts"].items():
+        lines += [f"- {c['claim']}: **{_WORDS[c['verdict']]}**: {c['detail']}; difference "
+                  f"{points(c['interval'])} points." for c in checks]  # fmt: skip
+    if not any(results["verdicts"].values()):
+        lines.append("- None yet: no maze has been deployed.")
+    lines += [
+        "",
+        "## Protocol",
+        "",
+        "- Environment: OGBench's `antmaze-<maze>-v0` (its locomaze: the D4RL ant, gear 30, 0.1 s "
+        "per step), 29-dim state (qpos + qvel), 8 torques.",
+        "- Tasks: its five evaluation tasks per maze (start and goal cells with its noise), success "
+        "within 0.5 of the goal. OGBench's protocol: at most 1000 steps. The paper's: its code's "
+        "2000-step episodes, from the same run (an episode runs the same up to 1000 steps "
+        "whatever its limit). The planner gets the goal as `[x, y]`; GCBC gets a full goal "
+        "observation (a standing ant at the goal).",
+        "- Data: OGBench's `navigate` recipe run here with our expert in the place of OGBench's "
+        "(BFS oracle direction -> our direction-commanded SAC actor -> + N(0, 0.2), clipped; a "
+        "new goal on each reach; 1001-step episodes).",
+        f"- Expert: `experts/ant/actor.safetensors`, {expert.get('steps')} SAC steps "
+        f"({expert.get('sac_phases')}).",
+        "- Intervals: 95 % Wilson; verdicts by the rules of `pipeline/reporting/common.py` "
+        "(docs/experiments.md).",
+        "",
+    ]
+    for name, maze in results["mazes"].items():
+        lines += [f"## {ogbench_name(name)}", "", *_data_lines(maze)]
+        lines += [f"- {note}" for note in maze.get("notes", [])]
+        lines += ["", "The ladder (each step needs the one before):", "", *_ladder(maze)]
+        if maze["agents"]:
+            lines += ["(d) OGBench's five tasks, success % (95 % Wilson interval):", "",
+                      *_agent_rows(maze["agents"])]  # fmt: skip
+        else:
+            lines += ["(d) OGBench's five tasks: not deployed yet.", ""]
+        row = _expert_check_row(expert, name)
+        if row:
+            if not maze["agents"]:
+                lines += _agent_rows([])
+            lines.append(row)
+        if maze.get("mass_sweep"):
+            lines += ["", "Robustness to the ant's mass (paper figure 5: every body's mass and "
+                      "inertia times the factor, the models unchanged), success % on OGBench's "
+                      "five tasks pooled, OGBench's protocol, beside the paper's (antmaze-large, "
+                      "its protocol):", "", *_mass_rows(maze["mass_sweep"])]  # fmt: skip
+        lines += ["", _published_line(name), ""]
+    lines += ["## Commands", "", "```bash", *results["commands"], "```", ""]
+    return "\n".join(lines)
+
+
+# --- the report ---------------------------------------------------------------------------------
+
+
+def expert_info(actor: Mapping[str, Any]) -> dict[str, Any]:
+    """What the report says of the shipped expert (`experts/ant/actor.json`)."""
+    info = actor.get("info", {})
+    phases = ", then ".join(
+        f"from step {p['from_step']}: action noise {p['action_noise']}"
+        + (", episode ends on a flip" if p["terminate_upside_down"] else "")
+        for p in info.get("sac", {}).get("phases", [])
+    )
+    return {"steps": info.get("steps"), "sac_phases": phases or "OGBench's recipe",
+            "quality": info.get("quality", {})}  # fmt: skip
+
+
+def runs_json(mazes: Mapping[str, Mapping[str, Any]]) -> list[dict[str, Any]]:
+    """Every agent's successes per task, flat: maze, agent, protocol, tasks -> episodes, successes."""
+    out = []
+    for name, maze in mazes.items():
+        for a in maze["agents"]:
+            for protocol in ("ogbench", "paper"):
+                tasks = {t: {"episodes": r[protocol]["episodes"],
+                             "successes": r[protocol]["successes"]}
+                         for t, r in a["tasks"].items() if r[protocol]}  # fmt: skip
+                if tasks:
+                    out.append({"maze": name, "dataset": ogbench_name(name), "agent": a["agent"],
+                                "protocol": protocol, "tasks": tasks})  # fmt: skip
+    return out
+
+
+def build(
+    mazes: Mapping[str, Mapping[str, Any]],
+    expert: Mapping[str, Any],
+    commands: list[str],
+    stamp: Mapping[str, Any],
+) -> dict[str, Any]:
+    """The whole report's JSON: the mazes, their verdicts, the flat runs, the published numbers."""
+    published = {
+        ogbench_name(m): {k: [round(100 * a), round(100 * b)] for k, (a, b) in t.items()}
+        for m in MAZES if (t := paper.OGBENCH.get(ogbench_name(m)))
+    }  # fmt: skip
+    return {
+        "what": "OPOSM on OGBench's ant mazes, beside OGBench's published table and the paper's",
+        "stamp": dict(stamp),
+        "expert": dict(expert),
+        "mazes": dict(mazes),
+        "verdicts": {name: verdicts(name, maze) for name, maze in mazes.items()},
+        "runs": runs_json(mazes),
+        "published": published,
+        "paper": {paper_name(m): {f"table{n}": list(t[paper_name(m)]["oposm"])
+                                  for n, t in ((1, paper.TABLE1), (4, paper.TABLE4))
+                                  if paper_name(m) in t} for m in MAZES},  # fmt: skip
+        "commands": commands,
+    }
+
+
+def write(out: Path, results: Mapping[str, Any]) -> None:
+    """`out/antmaze.json` and `out/antmaze.md`."""
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / "antmaze.json", results)
+    with atomic_path(out / "antmaze.md") as tmp:
+        tmp.write_text(render(results))
