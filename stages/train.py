@@ -17,7 +17,7 @@ from pathlib import Path
 import torch
 
 from pipeline.config import Params, TrainParams
-from pipeline.devices import AutoThreads, resolve_device
+from pipeline.devices import AutoThreads, resolve_device, resolve_dtype
 from pipeline.errors import UserError
 from pipeline.io import output_lock
 from pipeline.model import SkillModel, SkillModelConfig, save_model
@@ -117,6 +117,10 @@ def run(params: Params, paths: Paths, progress_bar: bool = True) -> Progress:
         raise UserError(f"{segments_dir} has no validation windows; give segment.split some")
 
     accelerator = _accelerator(cfg.device)
+    dtype = resolve_dtype(cfg.dtype, accelerator.device)  # in the fingerprint and summary as run
+    if dtype != cfg.dtype:
+        log.info("train.dtype auto: %s on %s", dtype, accelerator.device)
+        params = params.model_copy(update={"train": cfg.model_copy(update={"dtype": dtype})})
     with contextlib.ExitStack() as stack:
         if accelerator.is_main_process:  # one writer per model folder
             stack.enter_context(output_lock(paths.model(name)))
@@ -236,6 +240,7 @@ def _train(
             "windows_per_s": progress.step * cfg.batch_size / run_s,
             "processes": world,
             "device": str(accelerator.device),
+            "dtype": cfg.dtype,
         }
         live.end()
         _publish(paths, name, cfg.select, best_dir, live_dir, live.summary)

@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING
 import torch
 from torch import nn
 
+from pipeline.devices import resolve_dtype
 from pipeline.model.skill_model import SkillModel
 from pipeline.training.data import WindowBatch
 from pipeline.training.losses import e_step_loss, m_step_loss, vi_loss
@@ -296,8 +297,9 @@ def updater_for(
 ) -> EMUpdater | VIUpdater:
     """`make_updater` with every setting from the train params (what `oposm train` and
     `oposm bench train` run)."""
+    device = next(model.parameters()).device
     return make_updater(
         cfg.method, model, cfg.lr_e, cfg.lr_m, grad_clip=cfg.grad_clip, compile=cfg.compile,
-        dtype=cfg.dtype, e_kl=cfg.e_kl, prior_ema=cfg.prior_ema if cfg.e_prior == "ema" else None,
+        dtype=resolve_dtype(cfg.dtype, device), e_kl=cfg.e_kl, prior_ema=cfg.prior_ema if cfg.e_prior == "ema" else None,
         reduce_grads=reduce_grads,
     )  # fmt: skip
