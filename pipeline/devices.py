@@ -42,27 +42,6 @@ def torch_threads(threads: int | None) -> Iterator[None]:
         torch.set_num_threads(previous)
 
 
-def native_bfloat16(cpuinfo: Path = Path("/proc/cpuinfo")) -> bool:
-    """Whether this CPU multiplies bfloat16 in hardware (the AVX512-BF16 or AMX-BF16 flags of
-    Linux's /proc/cpuinfo); False where the file does not exist."""
-    try:
-        flags = cpuinfo.read_text(errors="replace")
-    except OSError:
-        return False
-    return any(f" {flag}" in flags for flag in ("avx512_bf16", "amx_bf16"))
-
-
-def resolve_dtype(setting: str, device: torch.device, native: bool | None = None) -> str:
-    """`train.dtype`: float32 or bfloat16 as is; "auto": bfloat16 on a CPU that multiplies it in
-    hardware (`native`, default `native_bfloat16()`: 1.9x the EM steps/s on AVX512-BF16), else
-    float32 (on other CPUs bfloat16 is emulated and slower; on GPUs not yet measured)."""
-    if setting != "auto":
-        return setting
-    if native is None:
-        native = device.type == "cpu" and native_bfloat16()
-    return "bfloat16" if device.type == "cpu" and native else "float32"
-
-
 def _own_running() -> int:
     """This process's threads that Linux counts as runnable right now (torch's workers
     included: OpenMP threads spin between parallel regions)."""

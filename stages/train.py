@@ -17,7 +17,7 @@ from pathlib import Path
 import torch
 
 from pipeline.config import Params, TrainParams
-from pipeline.devices import AutoThreads, resolve_device, resolve_dtype
+from pipeline.devices import AutoThreads, resolve_device
 from pipeline.errors import UserError
 from pipeline.io import output_lock
 from pipeline.model import SkillModel, SkillModelConfig, save_model
@@ -35,7 +35,7 @@ from pipeline.training.loop import (
     Trainer,
 )
 from pipeline.training.state import Progress, load_state, read_progress, save_state
-from pipeline.training.updaters import no_reduce, updater_for
+from pipeline.training.updaters import no_reduce, resolve_dtype, updater_for
 from stages.report import write_headline
 
 log = logging.getLogger(__name__)

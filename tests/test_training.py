@@ -343,7 +343,7 @@ def test_killed_run_resumes_and_ends_bit_identical_to_an_uninterrupted_one(tmp_p
     metrics = json.loads((killed / "data/reports/train/metrics.json").read_text())
     assert metrics["step"] == 400
     # the precision it ran in, as resolved (`train.dtype: auto` is this CPU's choice)
-    from pipeline.devices import resolve_dtype
+    from pipeline.training.updaters import resolve_dtype
 
     assert metrics["dtype"] == resolve_dtype("auto", torch.device("cpu"))
 
