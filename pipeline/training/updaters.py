@@ -321,6 +321,6 @@ def updater_for(
     device = next(model.parameters()).device
     return make_updater(
         cfg.method, model, cfg.lr_e, cfg.lr_m, grad_clip=cfg.grad_clip, compile=cfg.compile,
-        dtype=resolve_dtype(cfg.dtype, device), e_kl=cfg.e_kl, prior_ema=cfg.prior_ema if cfg.e_prior == "ema" else None,
-        reduce_grads=reduce_grads,
+        dtype=resolve_dtype(cfg.dtype, device), e_kl=cfg.e_kl,
+        prior_ema=cfg.prior_ema if cfg.e_prior == "ema" else None, reduce_grads=reduce_grads,
     )  # fmt: skip
