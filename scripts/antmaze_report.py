@@ -37,7 +37,9 @@ def main(argv: list[str] | None = None) -> None:
     for item in args.maze:
         name, _, root = item.partition("=")
         if name not in antmaze.MAZES or not root:
-            raise UserError(f"--maze {item!r}: expected MAZE=DATA_ROOT, MAZE one of {antmaze.MAZES}")
+            raise UserError(
+                f"--maze {item!r}: expected MAZE=DATA_ROOT, MAZE one of {antmaze.MAZES}"
+            )
         mazes[name] = antmaze.collect(Path(root)) | {"notes": notes.get(name, [])}
     commands = ["uv run dvc repro experiments/antmaze/dvc.yaml"]
     if args.lock:

@@ -20,8 +20,9 @@ import antmaze_report  # noqa: E402
 
 def _row(successes: int, n: int, within: int | None = None) -> dict:
     r = rate(successes, n)
+    lo, hi = r["ci95"]
     row = {"episodes": n, "successes": successes, "success_rate": r["rate"],
-           "success_ci95_low": r["ci95"][0], "success_ci95_high": r["ci95"][1], "fallen": 1}  # fmt: skip
+           "success_ci95_low": lo, "success_ci95_high": hi, "fallen": 1}  # fmt: skip
     if within is not None:  # a 2000-step run: success within OGBench's 1000 steps as well
         row["within_steps"] = {"1000": {"successes": within}}
     return row
@@ -57,8 +58,12 @@ def _maze(root: Path) -> Path:
     _write(root, "runs/gcbc/reports/deploy/report.json", _deploy("gcbc", [2] * 5))
     old = _deploy("oposm", [10] * 5, n=10, max_steps=1000)  # a 1000-step run: OGBench's only
     _write(root, "runs/old/reports/deploy/report.json", old)
-    rg = {"tasks": ["random_goal"], "episodes_per_task": 50, "max_steps": 2000,
-          "by_agent": {"oposm": {"random_goal": _row(45, 50, 44) | {"final_distance_mean": 0.8}}}}
+    rg = {
+        "tasks": ["random_goal"],
+        "episodes_per_task": 50,
+        "max_steps": 2000,
+        "by_agent": {"oposm": {"random_goal": _row(45, 50, 44) | {"final_distance_mean": 0.8}}},
+    }
     _write(root, "runs/random-goal/reports/deploy/report.json", rg)  # fmt: skip
     for factor, s in ((1.0, 9), (0.5, 5), (2.0, 7)):  # figure 5: oposm drops less than expert
         sweep = _deploy("oposm", [s] * 5, n=10, max_steps=1000, mass=factor)

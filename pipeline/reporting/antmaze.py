@@ -129,7 +129,8 @@ def _random_goal(runs: list[tuple[str, dict[str, Any]]]) -> list[dict[str, Any]]
 
 
 def _mass_sweep(runs: list[tuple[str, dict[str, Any]]]) -> dict[str, dict[str, Any]] | None:
-    """agent -> mass factor (a string) -> its pooled `rate` on OGBench's tasks, OGBench's protocol."""
+    """agent -> mass factor (a string) -> its pooled `rate` on OGBench's tasks (OGBench's
+    protocol)."""
     sweep: dict[str, dict[str, Any]] = {}
     for run, report in runs:
         if not run.startswith(MASS_RUN):
@@ -241,14 +242,21 @@ def _ladder(maze: Mapping[str, Any]) -> list[str]:
         replay = [(k, v) for k, v in validate.get("posterior", {}).items()
                   if "replay_error_mean" in v]  # fmt: skip
         if replay:
-            lines += ["(a) Skill fidelity: the posterior's skills of held-out recorded windows, "
-                      "executed by the policy in MuJoCo from the recorded start; mean x-y "
-                      "distance to the recorded end (m), against the TAWM's prediction and "
-                      "against no model (the end = the start):", "",
-                      "| skills | steps | executed | TAWM | no model |", "|---|---|---|---|---|"]
-            lines += [f"| {k.split('_')[1]} | {v['steps']} | {v['replay_error_mean']:.2f} | "
-                      f"{v['tawm_recorded_error_mean']:.2f} | "
-                      f"{v['no_model_recorded_error_mean']:.2f} |" for k, v in replay]
+            lines += [
+                "(a) Skill fidelity: the posterior's skills of held-out recorded windows, "
+                "executed by the policy in MuJoCo from the recorded start; mean x-y "
+                "distance to the recorded end (m), against the TAWM's prediction and "
+                "against no model (the end = the start):",
+                "",
+                "| skills | steps | executed | TAWM | no model |",
+                "|---|---|---|---|---|",
+            ]
+            lines += [
+                f"| {k.split('_')[1]} | {v['steps']} | {v['replay_error_mean']:.2f} | "
+                f"{v['tawm_recorded_error_mean']:.2f} | "
+                f"{v['no_model_recorded_error_mean']:.2f} |"
+                for k, v in replay
+            ]
             lines.append("")
         lines += [f"(b) Open loop with prior skills from {validate['starts']} held-out starts: "
                   "mean x-y error of the predicted end (m); paper figure 4 is antmaze-large:", "",
@@ -281,12 +289,14 @@ def _data_lines(maze: Mapping[str, Any]) -> list[str]:
                      "1000 steps.")  # fmt: skip
     if train:
         val = train["val"]
-        lines.append(f"- Training (EM): {train['steps']} steps ({train['steps_per_s']:.2f} "
-                     f"steps/s, {train['wall_s'] / 60:.0f} min on {train.get('device')}); "
-                     f"published checkpoint by `{train['select']}` at step {train['best_step']}; "
-                     f"validation s_T NLL {val['st_nll']:.2f} (posterior skill), "
-                     f"{val['st_nll_prior']:.2f} (prior skills); KL(q || prior) "
-                     f"{val.get('kl', float('nan')):.1f} nats at the last evaluation.")
+        lines.append(
+            f"- Training (EM): {train['steps']} steps ({train['steps_per_s']:.2f} "
+            f"steps/s, {train['wall_s'] / 60:.0f} min on {train.get('device')}); "
+            f"published checkpoint by `{train['select']}` at step {train['best_step']}; "
+            f"validation s_T NLL {val['st_nll']:.2f} (posterior skill), "
+            f"{val['st_nll_prior']:.2f} (prior skills); KL(q || prior) "
+            f"{val.get('kl', float('nan')):.1f} nats at the last evaluation."
+        )
     return lines
 
 
@@ -317,8 +327,10 @@ def _published_line(name: str) -> str:
     table = paper.OGBENCH.get(ogbench_name(name))
     parts = []
     if table:
-        parts.append(f"OGBench's paper ({ogbench_name(name)}, {paper.OGBENCH_SEEDS} seeds, its "
-                     "protocol): " + ", ".join(f"{m} {mean_std(*v)}" for m, v in table.items()))
+        parts.append(
+            f"OGBench's paper ({ogbench_name(name)}, {paper.OGBENCH_SEEDS} seeds, its "
+            "protocol): " + ", ".join(f"{m} {mean_std(*v)}" for m, v in table.items())
+        )
     own = [f"table {n} ({what}) {mean_std(*t[paper_name(name)]['oposm'], digits=1)}"
            for n, what, t in ((1, "fixed goal", paper.TABLE1), (4, "random goals", paper.TABLE4))
            if paper_name(name) in t]  # fmt: skip
@@ -345,7 +357,7 @@ def render(results: Mapping[str, Any]) -> str:
         "## Verdicts",
         "",
     ]
-    for maze, checks in results["verdicts"].items():
+    for checks in results["verdicts"].values():
         lines += [f"- {c['claim']}: **{_WORDS[c['verdict']]}**: {c['detail']}; difference "
                   f"{points(c['interval'])} points." for c in checks]  # fmt: skip
     if not any(results["verdicts"].values()):
@@ -356,8 +368,8 @@ def render(results: Mapping[str, Any]) -> str:
         "",
         "- Environment: OGBench's `antmaze-<maze>-v0` (its locomaze: the D4RL ant, gear 30, 0.1 s "
         "per step), 29-dim state (qpos + qvel), 8 torques.",
-        "- Tasks: its five evaluation tasks per maze (start and goal cells with its noise), success "
-        "within 0.5 of the goal. OGBench's protocol: at most 1000 steps. The paper's: its code's "
+        "- Tasks: its five evaluation tasks per maze (start and goal cells with its noise), "
+        "success within 0.5 of the goal. OGBench's protocol: at most 1000 steps. The paper's: its code's "
         "2000-step episodes, from the same run (an episode runs the same up to 1000 steps "
         "whatever its limit). The planner gets the goal as `[x, y]`; GCBC gets a full goal "
         "observation (a standing ant at the goal).",
@@ -410,7 +422,8 @@ def expert_info(actor: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def runs_json(mazes: Mapping[str, Mapping[str, Any]]) -> list[dict[str, Any]]:
-    """Every agent's successes per task, flat: maze, agent, protocol, tasks -> episodes, successes."""
+    """Every agent's successes per task, flat: maze, agent, protocol, tasks -> episodes and
+    successes."""
     out = []
     for name, maze in mazes.items():
         for a in maze["agents"]:
@@ -443,9 +456,14 @@ def build(
         "verdicts": {name: verdicts(name, maze) for name, maze in mazes.items()},
         "runs": runs_json(mazes),
         "published": published,
-        "paper": {paper_name(m): {f"table{n}": list(t[paper_name(m)]["oposm"])
-                                  for n, t in ((1, paper.TABLE1), (4, paper.TABLE4))
-                                  if paper_name(m) in t} for m in MAZES},  # fmt: skip
+        "paper": {
+            paper_name(m): {
+                f"table{n}": list(t[paper_name(m)]["oposm"])
+                for n, t in ((1, paper.TABLE1), (4, paper.TABLE4))
+                if paper_name(m) in t
+            }
+            for m in MAZES
+        },  # fmt: skip
         "commands": commands,
     }
 

@@ -33,11 +33,11 @@ from pipeline.io import atomic_path, write_json
 from pipeline.reporting.common import (
     above_every,
     above_published,
+    lock_commands,
     mean_std,
     percent,
     points,
     rate_of,
-    lock_commands,
     read,
     stamp_text,
 )
