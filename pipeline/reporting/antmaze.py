@@ -370,8 +370,8 @@ def render(results: Mapping[str, Any]) -> str:
         "per step), 29-dim state (qpos + qvel), 8 torques.",
         "- Tasks: its five evaluation tasks per maze (start and goal cells with its noise), "
         "success within 0.5 of the goal. OGBench's protocol: at most 1000 steps. The paper's: "
-        "its code's 2000-step episodes, from the same run (an episode runs the same up to 1000 steps "
-        "whatever its limit). The planner gets the goal as `[x, y]`; GCBC gets a full goal "
+        "its code's 2000-step episodes, from the same run (an episode runs the same up to 1000 "
+        "steps whatever its limit). The planner gets the goal as `[x, y]`; GCBC gets a full goal "
         "observation (a standing ant at the goal).",
         "- Data: OGBench's `navigate` recipe run here with our expert in the place of OGBench's "
         "(BFS oracle direction -> our direction-commanded SAC actor -> + N(0, 0.2), clipped; a "
