@@ -303,11 +303,11 @@ class TrainParams(_Section):
     dtype: Literal["auto", "float32", "bfloat16"] = Field(
         "auto",
         description="What the hidden layers and the posterior's GRU multiply in. bfloat16 "
-        "(torch.autocast): 1.9x the steps/s on a CPU with AVX512-BF16 (slower without it or "
-        "AMX; GPUs not yet measured); weights, Adam, output layers, losses and validation stay "
-        "float32. auto: bfloat16 on a CPU with AVX512-BF16 or AMX (Linux's /proc/cpuinfo "
-        "flags), else float32; the choice is logged and in metrics/train.json. The two differ "
-        "in rounding: a model trained here is the same bits only on a CPU of the same kind.",
+        "(torch.autocast): 1.9x the steps/s measured on one AVX512-BF16 CPU, 0.5x on another "
+        "without AMX; GPUs not yet measured; weights, Adam, output layers, losses and validation "
+        "stay float32. auto: bfloat16 on a CPU with AMX-BF16 (Linux's /proc/cpuinfo flags), "
+        "else float32; the choice is logged and in metrics/train.json. The two differ in "
+        "rounding: a model trained here is the same bits only on a CPU of the same kind.",
     )
 
 

@@ -265,7 +265,9 @@ def machine() -> str:
     models = [line.split(":", 1)[1].strip() for line in text.splitlines()
               if line.startswith("model name")]  # fmt: skip
     cpu = models[0] if models else platform.processor() or platform.machine()
-    bf16 = " (with AVX512-BF16)" if " avx512_bf16" in text else ""
+    units = [name for flag, name in ((" avx512_bf16", "AVX512-BF16"), (" amx_bf16", "AMX-BF16"))
+             if flag in text]  # fmt: skip
+    bf16 = f" (with {', '.join(units)})" if units else ""
     gpus = _gpus()
     gpu = f", GPU {', '.join(gpus)}" if gpus else ""
     try:

@@ -42,19 +42,21 @@ Loss = Callable[[SkillModel, WindowBatch], tuple[torch.Tensor, dict[str, torch.T
 
 
 def native_bfloat16(cpuinfo: Path = Path("/proc/cpuinfo")) -> bool:
-    """Whether this CPU multiplies bfloat16 in hardware (the AVX512-BF16 or AMX-BF16 flags of
-    Linux's /proc/cpuinfo); False where the file does not exist."""
+    """Whether this CPU multiplies bfloat16 matrices in hardware fast enough to pay: the AMX-BF16
+    flag of Linux's /proc/cpuinfo. AVX512-BF16 alone does not (measured on such a CPU without
+    AMX, family 6 model 207: the ant's EM step 2.1x slower in bfloat16 than in float32);
+    False where the file does not exist."""
     try:
         flags = cpuinfo.read_text(errors="replace")
     except OSError:
         return False
-    return any(f" {flag}" in flags for flag in ("avx512_bf16", "amx_bf16"))
+    return " amx_bf16" in flags
 
 
 def resolve_dtype(setting: str, device: torch.device, native: bool | None = None) -> str:
     """`train.dtype`: float32 or bfloat16 as is; "auto": bfloat16 on a CPU that multiplies it in
-    hardware (`native`, default `native_bfloat16()`: 1.9x the EM steps/s on AVX512-BF16), else
-    float32 (on other CPUs bfloat16 is emulated and slower; on GPUs not yet measured)."""
+    hardware (`native`, default `native_bfloat16()`), else float32 (on other CPUs bfloat16 is
+    emulated or converted and slower; on GPUs not yet measured)."""
     if setting != "auto":
         return setting
     if native is None:
