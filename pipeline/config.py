@@ -301,7 +301,7 @@ class TrainParams(_Section):
         "host's launch overhead; single process). Ignored on CPU.",
     )
     dtype: Literal["auto", "float32", "bfloat16"] = Field(
-        "auto",
+        "float32",
         description="What the hidden layers and the posterior's GRU multiply in. bfloat16 "
         "(torch.autocast): 1.9x the steps/s measured on one AVX512-BF16 CPU, 0.5x on another "
         "without AMX; GPUs not yet measured; weights, Adam, output layers, losses and validation "

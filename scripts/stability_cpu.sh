@@ -2,26 +2,26 @@
 # results/stability-cpu.{md,json}: EM across seeds, each run trained (`oposm train`, the main
 # job's params, one torch thread) then deployed on the main job's tasks, 100 random goals and 100
 # corner-to-corner episodes (`oposm deploy`). Recipes (RECIPES below): `default` (the shipped
-# params: train.e_prior ema, train.dtype auto = bfloat16 on an AVX512-BF16 CPU) and `float32`
-# (the same in float32: what a CPU without native bfloat16 trains) on seeds 0-9, then `paper`
-# (train.e_prior: current, the paper's and the previous default) on seeds 0-4, then two probes on
-# the paper's E-step, seeds 1 and 2: `censored` (train.action_likelihood) and `layernorm`
-# (train.policy_trunk: layernorm_silu). Two jobs at a time; 6-11 min of training and 1-2 of deploying per run on an
-# idle 2-core AVX512-BF16 CPU. A run already finished is skipped, and a killed one resumes where
-# it stopped, so the same command continues a sweep.
+# params: train.e_prior ema, float32) and `bfloat16` (the same in bfloat16; the earlier rows
+# named `ema`) on seeds 0-9, then `paper` (train.e_prior: current, the paper's and the previous
+# default) on seeds 0-4, then two probes on the paper's E-step, seeds 1 and 2: `censored`
+# (train.action_likelihood) and `layernorm` (train.policy_trunk: layernorm_silu). Two jobs at a
+# time; 6-11 min of training and 1-2 of deploying per run on an idle 2-core CPU. A run already
+# finished is skipped, and a killed one resumes where it stopped, so the same command continues
+# a sweep.
 # Needs the main job's segments (`uv run dvc repro`). `--report` only rewrites the report.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 runs=data/runs
 declare -A RECIPES=(
   [default]=""
-  [float32]="-S train.dtype=float32"
+  [bfloat16]="-S train.dtype=bfloat16"
   [paper]="-S train.e_prior=current"
   [censored]="-S train.e_prior=current -S train.action_likelihood=censored"
   [layernorm]="-S train.e_prior=current -S train.policy_trunk=layernorm_silu"
 )
 jobs=()
-for recipe in default float32; do
+for recipe in default bfloat16; do
   for seed in 0 1 2 3 4 5 6 7 8 9; do jobs+=("$recipe $seed"); done
 done
 for seed in 0 1 2 3 4; do jobs+=("paper $seed"); done

@@ -76,10 +76,9 @@ def markdown(rows: list[dict], stamped: dict) -> str:
         "and 100 corner-to-corner episodes). A run is stable when its validation s_T NLL with "
         f"prior skills is within {NLL_BAND} of its recipe's median and it reaches at least "
         f"{MIN_SUCCESS:.0%} of the random goals. Recipes: default = the shipped params "
-        "(`train.e_prior: ema`, `train.dtype: auto`: bfloat16 on a CPU with AVX512-BF16; rows "
-        "named ema: the same recipe before `auto`, with `train.dtype: bfloat16`); float32 = "
-        "the same in float32; paper = `train.e_prior: current` (the paper's E-step and the "
-        "previous default; its earlier runs, on another CPU and code version: "
+        "(`train.e_prior: ema`, float32); bfloat16 = the same with `train.dtype: bfloat16` "
+        "(the earlier rows named ema); paper = `train.e_prior: current` (the paper's E-step and "
+        "the previous default; its earlier runs, on another CPU and code version: "
         "`git show ad9de92:results/stability-cpu.md`); censored and layernorm = the paper's "
         "E-step with `train.action_likelihood: censored` or `train.policy_trunk: "
         "layernorm_silu`.",

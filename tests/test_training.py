@@ -306,7 +306,7 @@ def test_a_capturable_optimizer_state_resumes_in_an_eager_optimizer_and_steps_al
 
 @pytest.mark.slow  # three training processes
 def test_killed_run_resumes_and_ends_bit_identical_to_an_uninterrupted_one(tmp_path, segments):
-    overrides = {"max_steps": 400, "eval_every": 50, "checkpoint_every": 50}
+    overrides = {"max_steps": 400, "eval_every": 50, "checkpoint_every": 50, "dtype": "auto"}
     straight = _project(tmp_path / "straight", segments, overrides)
     subprocess.run(_train_command(straight), check=True, env=_env(), capture_output=True)
 
