@@ -1,12 +1,12 @@
-"""results/antmaze.md + results/antmaze.json: OPOSM on OGBench's ant mazes (the report itself:
-`pipeline/reporting/antmaze.py`). The report stage of `experiments/antmaze/dvc.yaml` runs
+"""The ant mazes' reports (`pipeline/reporting/antmaze.py`), as the stages of
+`experiments/antmaze/dvc.yaml` run them:
 
-    python scripts/antmaze_report.py --maze medium=data/experiments/antmaze/medium \
-        [--maze large=...] --notes experiments/antmaze/notes.json \
-        --lock experiments/antmaze/dvc.lock --out results
-
-`--keep` keeps the mazes of the existing OUT/antmaze.json that no `--maze` names (a maze whose
-data root is gone: another machine's run) and updates only those given.
+    # one maze's report, from its data root:
+    python scripts/antmaze_report.py maze large data/experiments/antmaze/large \
+        --notes experiments/antmaze/notes.json --lock experiments/antmaze/dvc.lock \
+        --out results/antmaze/large.json
+    # the page, results/antmaze.md + .json, from the mazes' reports:
+    python scripts/antmaze_report.py page results/antmaze/large.json [...] --out results
 """
 
 from __future__ import annotations
@@ -20,34 +20,48 @@ from pipeline.reporting import antmaze
 from pipeline.reporting.common import lock_commands, read, stamp
 
 ROOT = Path(__file__).resolve().parents[1]
+PIPELINE = "uv run dvc repro experiments/antmaze/dvc.yaml"
+
+
+def _maze(args: argparse.Namespace) -> None:
+    notes = (read(args.notes) if args.notes else None) or {}
+    commands = [f"{PIPELINE}:maze@{args.name}"]
+    if args.lock:
+        ran = [c for c in lock_commands(args.lock) if c.endswith(f"@{args.name}")]
+        commands += ["# which ran (dvc.lock):", *ran]
+    report = antmaze.maze_report(
+        args.name, args.root, notes.get(args.name, []), commands, stamp(ROOT)
+    )
+    antmaze.write_maze(args.out, report)
+    print(f"wrote {args.out}")
+
+
+def _page(args: argparse.Namespace) -> None:
+    reports = []
+    for path in args.reports:
+        report = read(path)
+        if report is None:
+            raise UserError(f"{path} does not exist; run its stage (maze@<maze>) first")
+        reports.append(report)
+    expert = antmaze.expert_info(read(ROOT / "experts" / "ant" / "actor.json") or {})
+    antmaze.write_page(args.out, antmaze.page(reports, expert, stamp(ROOT)))
+    print(f"wrote {args.out / 'antmaze.md'} and antmaze.json")
 
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--maze", action="append", default=[], help="MAZE=DATA_ROOT (repeat)")
-    parser.add_argument("--notes", type=Path, help="JSON: maze -> a list of notes on its runs")
-    parser.add_argument("--lock", type=Path, help="the pipeline's dvc.lock: its commands listed")
-    parser.add_argument("--out", type=Path, default=ROOT / "results")
-    parser.add_argument("--keep", action="store_true",
-                        help="keep OUT/antmaze.json's mazes that no --maze names")  # fmt: skip
+    sub = parser.add_subparsers(dest="command", required=True)
+    maze = sub.add_parser("maze", help="one maze's report from its data root")
+    maze.add_argument("name", help=f"one of {', '.join(antmaze.MAZES)}")
+    maze.add_argument("root", type=Path, help="its data root")
+    maze.add_argument("--notes", type=Path, help="JSON: maze -> a list of notes on its runs")
+    maze.add_argument("--lock", type=Path, help="the pipeline's dvc.lock: its commands listed")
+    maze.add_argument("--out", type=Path, required=True, help="the report's JSON file")
+    page = sub.add_parser("page", help="results/antmaze.md + .json from the mazes' reports")
+    page.add_argument("reports", type=Path, nargs="+", help="results/antmaze/<maze>.json files")
+    page.add_argument("--out", type=Path, default=ROOT / "results")
     args = parser.parse_args(argv)
-    notes = (read(args.notes) if args.notes else None) or {}
-    previous = (read(args.out / "antmaze.json") if args.keep else None) or {}
-    mazes = dict(previous.get("mazes", {}))
-    for item in args.maze:
-        name, _, root = item.partition("=")
-        if name not in antmaze.MAZES or not root:
-            raise UserError(
-                f"--maze {item!r}: expected MAZE=DATA_ROOT, MAZE one of {antmaze.MAZES}"
-            )
-        mazes[name] = antmaze.collect(Path(root)) | {"notes": notes.get(name, [])}
-    commands = ["uv run dvc repro experiments/antmaze/dvc.yaml"]
-    if args.lock:
-        commands += ["# which ran (dvc.lock):", *lock_commands(args.lock)]
-    expert = antmaze.expert_info(read(ROOT / "experts" / "ant" / "actor.json") or {})
-    results = antmaze.build(mazes, expert, commands, stamp(ROOT))
-    antmaze.write(args.out, results)
-    print(f"wrote {args.out / 'antmaze.md'} and antmaze.json")
+    (_maze if args.command == "maze" else _page)(args)
 
 
 if __name__ == "__main__":

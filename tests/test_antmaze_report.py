@@ -98,9 +98,9 @@ def test_collect_renders_both_protocols_the_ladder_and_each_verdict(tmp_path):
     # rule 5: off x1 pooled, oposm 60 of 100 against the expert's 10 of 100
     fig5 = checks["OPOSM keeps more of its success under mass changes than the expert"]
     assert fig5["verdict"] == HOLDS and fig5["interval"][0] > 0
-    results = antmaze.build({"medium": maze}, {"steps": 5}, ["cmd a"], {"commit": "abc",
-                            "machine": "test box", "dvc": None})  # fmt: skip
-    antmaze.write(tmp_path / "out", results)
+    report = antmaze.maze_report("medium", tmp_path / "medium", ["a note"], ["cmd a"],
+                                 {"commit": "abc", "machine": "test box", "dvc": None})  # fmt: skip
+    antmaze.write_page(tmp_path / "out", antmaze.page([report], {"steps": 5}, report["stamp"]))
     text = (tmp_path / "out/antmaze.md").read_text()
     assert "| oposm | 50 | 80 [67, 89] | 80 [67, 89] |" in text
     assert text.index("| oposm | 50") < text.index("| oposm (run old)") < text.index("| gcbc | 50")
@@ -123,22 +123,31 @@ def test_verdicts_are_inconclusive_near_the_best_published_and_absent_without_ru
     assert antmaze.verdicts("medium", antmaze.collect(tmp_path / "empty")) == []
 
 
-def test_script_writes_both_mazes_and_keep_holds_a_maze_whose_root_is_gone(tmp_path):
-    out = tmp_path / "results"
+def test_script_writes_each_mazes_report_then_the_page_from_them(tmp_path):
+    """`maze`: a maze's report from its data root; `page`: results/antmaze.* from the reports
+    alone, so a maze whose data root is gone (another day's run) stays on the page."""
     notes = tmp_path / "notes.json"
     notes.write_text(json.dumps({"medium": ["trained elsewhere"]}))
-    medium = _maze(tmp_path / "medium")
-    antmaze_report.main(["--maze", f"medium={medium}", "--notes", str(notes), "--out", str(out)])
-    assert "- trained elsewhere" in (out / "antmaze.md").read_text()
-    shutil.rmtree(medium)
-    large = _maze(tmp_path / "large")
-    antmaze_report.main(["--maze", f"large={large}", "--keep", "--out", str(out)])
+    reports = tmp_path / "results/antmaze"
+    for name in ("large", "medium"):
+        root = _maze(tmp_path / name)
+        antmaze_report.main(["maze", name, str(root), "--notes", str(notes),
+                             "--out", str(reports / f"{name}.json")])  # fmt: skip
+        shutil.rmtree(root)
+    out = tmp_path / "results"
+    antmaze_report.main(["page", str(reports / "large.json"), str(reports / "medium.json"),
+                         "--out", str(out)])  # fmt: skip
+    text = (out / "antmaze.md").read_text()
+    assert text.index("## antmaze-medium-navigate") < text.index("## antmaze-large-navigate")
+    assert "- trained elsewhere" in text and "maze@medium" in text
     saved = json.loads((out / "antmaze.json").read_text())
-    assert set(saved["mazes"]) == {"medium", "large"}
-    assert saved["mazes"]["medium"]["ingest"]["steps"] == 4004  # kept from the first report
+    assert list(saved["mazes"]) == ["medium", "large"]
+    assert saved["mazes"]["large"]["ingest"]["steps"] == 4004
     assert {r["maze"] for r in saved["runs"]} == {"medium", "large"}
-    with pytest.raises(UserError, match="MAZE=DATA_ROOT"):
-        antmaze_report.main(["--maze", "huge=x", "--out", str(out)])
+    with pytest.raises(UserError, match="is not one of"):
+        antmaze_report.main(["maze", "huge", str(tmp_path), "--out", str(tmp_path / "x.json")])
+    with pytest.raises(UserError, match="does not exist"):
+        antmaze_report.main(["page", str(reports / "giant.json"), "--out", str(out)])
 
 
 def test_a_corrupt_report_is_a_one_line_error_naming_it(tmp_path):
@@ -146,8 +155,8 @@ def test_a_corrupt_report_is_a_one_line_error_naming_it(tmp_path):
     bad.parent.mkdir(parents=True)
     bad.write_text("{not json")
     result = subprocess.run(
-        [sys.executable, str(ROOT / "scripts/antmaze_report.py"), "--maze",
-         f"medium={tmp_path / 'ant'}", "--out", str(tmp_path / "results")],
+        [sys.executable, str(ROOT / "scripts/antmaze_report.py"), "maze", "medium",
+         str(tmp_path / "ant"), "--out", str(tmp_path / "results/medium.json")],
         capture_output=True, text=True,
     )  # fmt: skip
     assert result.returncode == 1 and "Traceback" not in result.stderr

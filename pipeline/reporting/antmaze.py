@@ -8,6 +8,11 @@ loop), and deploy runs under `runs/<run>/`: one per agent on OGBench's five task
 from the training data (`random_goal`, the development metric), and runs named `mass<factor>`
 (figure 5: `deploy.mass_scale`).
 
+Two steps, so that a maze's report outlives its data root (DVC's cache is local: a maze run
+on another day or machine keeps its report in git): stage `maze@<maze>` writes the maze's report,
+`results/antmaze/<maze>.json` (`maze_report`), from its data root; stage `report` writes the page,
+`results/antmaze.md` and `.json` (`page`), from every maze's report.
+
 Two protocols from one run. The deploys run the paper code's episodes (`deploy.max_steps: 2000`,
 success when the ant comes within 0.5 of the goal); OGBench's protocol (1000 steps, 0.5) is the
 same episodes' success within their first 1000 steps (an episode runs the same up to a limit
@@ -32,6 +37,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from pipeline.errors import UserError
 from pipeline.evaluation import paper
 from pipeline.io import atomic_path, write_json
 from pipeline.reporting.common import (
@@ -345,9 +351,9 @@ _WORDS = {HOLDS: "holds", FAILS: "does not hold", INCONCLUSIVE: "inconclusive"}
 
 def render(results: Mapping[str, Any]) -> str:
     expert = results["expert"]
-    made = ("Made by `uv run dvc repro experiments/antmaze/dvc.yaml` (its commands at the end)"
-            if results["stamp"].get("dvc") else
-            "Made by `scripts/antmaze_report.py` from the mazes' data roots")  # fmt: skip
+    made = ("Made by `uv run dvc repro experiments/antmaze/dvc.yaml` (each maze's commands in "
+            "its section)" if results["stamp"].get("dvc") else
+            "Made by `scripts/antmaze_report.py` from the mazes' reports")  # fmt: skip
     lines = [
         "# OGBench ant mazes: OPOSM beside OGBench's published table and the paper's",
         "",
@@ -357,11 +363,11 @@ def render(results: Mapping[str, Any]) -> str:
         "## Verdicts",
         "",
     ]
+    if not results["mazes"]:
+        lines.append("- None yet: no maze has a report.")
     for checks in results["verdicts"].values():
         lines += [f"- {c['claim']}: **{_WORDS[c['verdict']]}**: {c['detail']}; difference "
                   f"{points(c['interval'])} points." for c in checks]  # fmt: skip
-    if not any(results["verdicts"].values()):
-        lines.append("- None yet: no maze has been deployed.")
     lines += [
         "",
         "## Protocol",
@@ -402,7 +408,9 @@ def render(results: Mapping[str, Any]) -> str:
                       "five tasks pooled, OGBench's protocol, beside the paper's (antmaze-large, "
                       "its protocol):", "", *_mass_rows(maze["mass_sweep"])]  # fmt: skip
         lines += ["", _published_line(name), ""]
-    lines += ["## Commands", "", "```bash", *results["commands"], "```", ""]
+        lines += [f"This maze's report: `results/antmaze/{name}.json`, "
+                  f"{stamp_text(maze['stamp'])}. Its commands:", "", "```bash",
+                  *maze.get("commands", []), "```", ""]  # fmt: skip
     return "\n".join(lines)
 
 
@@ -437,13 +445,23 @@ def runs_json(mazes: Mapping[str, Mapping[str, Any]]) -> list[dict[str, Any]]:
     return out
 
 
-def build(
-    mazes: Mapping[str, Mapping[str, Any]],
-    expert: Mapping[str, Any],
-    commands: list[str],
-    stamp: Mapping[str, Any],
+def maze_report(
+    name: str, root: Path, notes: list[str], commands: list[str], stamp: Mapping[str, Any]
 ) -> dict[str, Any]:
-    """The whole report's JSON: the mazes, their verdicts, the flat runs, the published numbers."""
+    """One maze's report (stage `maze@<maze>`, `results/antmaze/<maze>.json`): what its data root
+    holds (`collect`), its verdicts, its notes, the commands that made it and where."""
+    if name not in MAZES:
+        raise UserError(f"maze {name!r} is not one of {MAZES}")
+    maze = collect(root) | {"notes": list(notes), "commands": list(commands)}
+    return {"maze": name, "stamp": dict(stamp), **maze, "verdicts": verdicts(name, maze)}
+
+
+def page(
+    reports: list[Mapping[str, Any]], expert: Mapping[str, Any], stamp: Mapping[str, Any]
+) -> dict[str, Any]:
+    """The page's JSON (stage `report`, `results/antmaze.json`) from the mazes' reports, in
+    `MAZES`' order: the mazes, their verdicts, the flat runs, the published numbers."""
+    mazes = {r["maze"]: dict(r) for r in sorted(reports, key=lambda r: MAZES.index(r["maze"]))}
     published = {
         ogbench_name(m): {k: [round(100 * a), round(100 * b)] for k, (a, b) in t.items()}
         for m in MAZES if (t := paper.OGBENCH.get(ogbench_name(m)))
@@ -452,8 +470,8 @@ def build(
         "what": "OPOSM on OGBench's ant mazes, beside OGBench's published table and the paper's",
         "stamp": dict(stamp),
         "expert": dict(expert),
-        "mazes": dict(mazes),
-        "verdicts": {name: verdicts(name, maze) for name, maze in mazes.items()},
+        "mazes": mazes,
+        "verdicts": {name: maze["verdicts"] for name, maze in mazes.items()},
         "runs": runs_json(mazes),
         "published": published,
         "paper": {
@@ -464,11 +482,16 @@ def build(
             }
             for m in MAZES
         },  # fmt: skip
-        "commands": commands,
     }
 
 
-def write(out: Path, results: Mapping[str, Any]) -> None:
+def write_maze(path: Path, report: Mapping[str, Any]) -> None:
+    """A maze's report as JSON."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_json(path, report)
+
+
+def write_page(out: Path, results: Mapping[str, Any]) -> None:
     """`out/antmaze.json` and `out/antmaze.md`."""
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "antmaze.json", results)
