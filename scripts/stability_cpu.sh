@@ -9,6 +9,8 @@
 # time; 6-11 min of training and 1-2 of deploying per run on an idle 2-core CPU. A run already
 # finished is skipped, and a killed one resumes where it stopped, so the same command continues
 # a sweep.
+# `bash scripts/stability_cpu.sh RECIPE...` runs only those recipes; the report keeps the other
+# recipes' rows from the committed results/stability-cpu.json (with their commit and machine).
 # Needs the main job's segments (`uv run dvc repro`). `--report` only rewrites the report.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -20,6 +22,13 @@ declare -A RECIPES=(
   [censored]="-S train.e_prior=current -S train.action_likelihood=censored"
   [layernorm]="-S train.e_prior=current -S train.policy_trunk=layernorm_silu"
 )
+report_only=false
+if [[ "${1:-}" == "--report" ]]; then report_only=true; shift; fi
+selected=("$@")
+for recipe in "${selected[@]}"; do
+  [[ -v "RECIPES[$recipe]" ]] || { echo "unknown recipe $recipe; use: ${!RECIPES[*]}" >&2; exit 2; }
+done
+wanted() { [[ ${#selected[@]} -eq 0 ]] || [[ " ${selected[*]} " == *" $1 "* ]]; }
 jobs=()
 for recipe in default bfloat16; do
   for seed in 0 1 2 3 4 5 6 7 8 9; do jobs+=("$recipe $seed"); done
@@ -40,13 +49,16 @@ run_one() {  # recipe seed
   fi
 }
 
-if [[ "${1:-}" == "--report" ]]; then
-  shift
-else
+if ! $report_only; then
   mkdir -p "$runs"
-  for ((i = 0; i < ${#jobs[@]}; i += 2)); do
-    run_one ${jobs[i]} &
-    if ((i + 1 < ${#jobs[@]})); then run_one ${jobs[i + 1]} & fi
+  todo=()
+  for job in "${jobs[@]}"; do
+    read -r recipe _ <<< "$job"
+    if wanted "$recipe"; then todo+=("$job"); fi
+  done
+  for ((i = 0; i < ${#todo[@]}; i += 2)); do
+    run_one ${todo[i]} &
+    if ((i + 1 < ${#todo[@]})); then run_one ${todo[i + 1]} & fi
     wait
   done
 fi
@@ -56,4 +68,6 @@ for job in "${jobs[@]}"; do
   read -r recipe seed <<< "$job"
   args+=(--run "$recipe $seed $runs/stability-$recipe-s$seed")
 done
-uv run python scripts/stability_report.py --out results/stability-cpu "${args[@]}" "$@"
+keep=()
+if [[ -f results/stability-cpu.json ]]; then keep=(--keep results/stability-cpu.json); fi
+uv run python scripts/stability_report.py --out results/stability-cpu "${keep[@]}" "${args[@]}"

@@ -4,6 +4,10 @@ Each `--run "RECIPE SEED RUN_DIR"` is a run folder holding `oposm train`'s `metr
 and `oposm deploy`'s `metrics/deploy.json` (random goals). A recipe is stable on a seed when its
 validation s_T NLL with prior skills is within `NLL_BAND` of the recipe's median and its
 random-goal success is at least `MIN_SUCCESS`; a run not yet finished is listed as missing.
+
+`--keep` an earlier report: a run whose folder holds no training metrics here (the data of an
+earlier session, on another machine) keeps its row from that report, with the commit and the
+machine it ran on, so a sweep of one recipe does not erase the others.
 """
 
 from __future__ import annotations
@@ -18,6 +22,8 @@ from pipeline.reporting.common import percent, read, stamp, stamp_text
 
 NLL_BAND = 0.5  # nats around the recipe's median
 MIN_SUCCESS = 0.95  # random goals reached
+# Recipes renamed since an earlier report: `ema` was the shipped E-step in bfloat16.
+RENAMED = {"ema": "bfloat16"}
 
 
 def _run(text: str) -> tuple[str, int, Path]:
@@ -25,11 +31,35 @@ def _run(text: str) -> tuple[str, int, Path]:
     return recipe, int(seed), Path(folder)
 
 
-def collect(runs: list[tuple[str, int, Path]]) -> list[dict]:
+def earlier_rows(report: dict | None) -> dict[tuple[str, int], dict]:
+    """The finished rows of an earlier report by (recipe, seed), each with its commit and
+    machine (a row of a report that recorded them per row keeps its own)."""
+    if report is None:
+        return {}
+    machine = report.get("stamp", {}).get("machine")
+    out = {}
+    for row in report.get("runs", []):
+        if "val_st_nll_prior" not in row:
+            continue
+        recipe = RENAMED.get(row["recipe"], row["recipe"])
+        out[recipe, row["seed"]] = {"commit": report.get("commit"), "machine": machine} | row | {
+            "recipe": recipe
+        }
+    return out
+
+
+def collect(
+    runs: list[tuple[str, int, Path]], stamped: dict, earlier: dict | None = None
+) -> list[dict]:
+    kept = earlier_rows(earlier)
     rows = []
     for recipe, seed, folder in runs:
         train, deploy = read(folder / "metrics/train.json"), read(folder / "metrics/deploy.json")
+        if train is None and (recipe, seed) in kept:
+            rows.append(kept[recipe, seed])
+            continue
         row = {"recipe": recipe, "seed": seed, "run": str(folder)}
+        row |= {"commit": stamped["commit"], "machine": stamped["machine"]}
         if train is not None:
             row |= {
                 "published_step": train["best_step"],
@@ -73,7 +103,9 @@ def markdown(rows: list[dict], stamped: dict) -> str:
         "",
         "Command: `bash scripts/stability_cpu.sh` (two runs at a time, one torch thread each; "
         "the main job's params, 5000 steps; deploy: the main job's 100 random goals "
-        "and 100 corner-to-corner episodes). A run is stable when its validation s_T NLL with "
+        "and 100 corner-to-corner episodes); `bash scripts/stability_cpu.sh RECIPE...` reruns "
+        "some recipes, the others keep their rows (and their commit and machine, in the last "
+        "table) from the committed report. A run is stable when its validation s_T NLL with "
         f"prior skills is within {NLL_BAND} of its recipe's median and it reaches at least "
         f"{MIN_SUCCESS:.0%} of the random goals. Recipes: default = the shipped params "
         "(`train.e_prior: ema`, float32); bfloat16 = the same with `train.dtype: bfloat16` "
@@ -97,12 +129,16 @@ def markdown(rows: list[dict], stamped: dict) -> str:
             f"{r['val_st_nll_prior']:.3f} | {r.get('diverged')} | "
             f"{_success(r, 'random_goal')} | {_success(r, 'corners')} | {stable} |"
         )
-    lines += ["", "| recipe | runs finished | stable |", "|---|---|---|"]
+    lines += ["", "| recipe | runs finished | stable | commit | machine |", "|---|---|---|---|---|"]
     for recipe in dict.fromkeys(r["recipe"] for r in rows):
         mine = [r for r in rows if r["recipe"] == recipe]
         done = [r for r in mine if "stable" in r]
+        where = dict.fromkeys((r.get("commit"), r.get("machine")) for r in done)
+        commits = ", ".join(str(c) for c in dict.fromkeys(c for c, _ in where))
+        machines = "; ".join(m or "not recorded" for m in dict.fromkeys(m for _, m in where))
         lines.append(
-            f"| {recipe} | {len(done)} of {len(mine)} | {sum(r['stable'] for r in done)} |"
+            f"| {recipe} | {len(done)} of {len(mine)} | {sum(r['stable'] for r in done)} | "
+            f"{commits} | {machines} |"
         )
     return "\n".join(lines) + "\n"
 
@@ -111,9 +147,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--run", action="append", default=[], help="'RECIPE SEED RUN_DIR'")
     parser.add_argument("--out", type=Path, required=True, help="results/<name> (no suffix)")
+    parser.add_argument("--keep", type=Path, help="an earlier report's JSON (rows not rerun here)")
     args = parser.parse_args()
-    rows = collect([_run(text) for text in args.run])
     stamped = stamp(Path.cwd())
+    rows = collect([_run(text) for text in args.run], stamped, read(args.keep) if args.keep else None)
     write_json(args.out.with_suffix(".json"), {"commit": stamped["commit"], "stamp": stamped,
                                                "runs": rows})  # fmt: skip
     with atomic_path(args.out.with_suffix(".md")) as tmp:

@@ -48,4 +48,34 @@ def test_stability_table_marks_each_run_against_its_recipe(tmp_path):
     row = "| new | 0 | 5000 | 1.400 | False | 97 [92, 99], 97/100 | 50 [24, 76], 5/10 | yes |"
     assert row in text
     assert "| old | 1 | not run yet |" in text
-    assert "| new | 4 of 4 | 2 |" in text
+    assert "| new | 4 of 4 | 2 | " in text
+    assert first["commit"] == report["commit"] and first["machine"] == report["stamp"]["machine"]
+
+
+def test_rows_not_rerun_keep_their_earlier_commit_and_machine(tmp_path):
+    """`--keep`: a run whose folder is empty here keeps its row of the earlier report (a legacy
+    recipe name renamed), with that report's commit; a rerun row replaces its earlier one."""
+    earlier = {
+        "commit": "abc1234",
+        "runs": [
+            {"recipe": "ema", "seed": 0, "published_step": 4750, "val_st_nll_prior": 1.3,
+             "diverged": False, "random_goal_success": 1.0, "random_goal_episodes": 100},
+            {"recipe": "default", "seed": 0, "published_step": 100, "val_st_nll_prior": 9.0},
+        ],
+    }  # fmt: skip
+    (tmp_path / "earlier.json").write_text(json.dumps(earlier))
+    fresh = _run_folder(tmp_path / "default-0", 5000, 1.4, 0.99)
+    out = tmp_path / "stability"
+    args = ["--run", f"default 0 {fresh}", "--run", f"bfloat16 0 {tmp_path / 'gone'}"]
+    subprocess.run(
+        [sys.executable, SCRIPT, "--out", out, "--keep", tmp_path / "earlier.json", *args],
+        check=True,
+        cwd=ROOT,
+    )
+    report = json.loads(out.with_suffix(".json").read_text())
+    rows = {(r["recipe"], r["seed"]): r for r in report["runs"]}
+    assert rows["bfloat16", 0]["commit"] == "abc1234" and rows["bfloat16", 0]["stable"] is True
+    assert rows["default", 0]["published_step"] == 5000
+    assert rows["default", 0]["commit"] == report["commit"] != "abc1234"
+    text = out.with_suffix(".md").read_text()
+    assert "| bfloat16 | 1 of 1 | 1 | abc1234 | not recorded |" in text
