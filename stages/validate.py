@@ -17,9 +17,15 @@ from pipeline.config import Params
 from pipeline.devices import resolve_device, torch_threads
 from pipeline.envs.disturbance import Pushes
 from pipeline.envs.spec import make_env_spec
+from pipeline.errors import UserError
 from pipeline.evaluation.compat import check_same_environment
 from pipeline.evaluation.open_loop import run_open_loop
-from pipeline.evaluation.open_loop_metrics import end_position_table, error_table, open_loop_report
+from pipeline.evaluation.open_loop_metrics import (
+    end_position_table,
+    error_table,
+    has_walls,
+    open_loop_report,
+)
 from pipeline.model.checkpoint import load_dynamics, load_model, skill_horizon
 from pipeline.paths import Paths
 from pipeline.segments import load_segments
@@ -53,6 +59,11 @@ def run(params: Params, paths: Paths) -> dict[str, Any]:
     segments = load_segments(paths.existing(paths.segments(name)))
     info = segments.info
     spec = make_env_spec(info.env_id, info.env_kwargs)
+    if cfg.record_starts and not has_walls(spec.layout):
+        raise UserError(
+            f"validate.record_starts: the validate recording draws a maze, and {info.env_id} "
+            "is not one; set validate.record_starts=0"
+        )
     device = resolve_device(cfg.device, "validate.device")
     model, meta = load_model(paths.existing(paths.model(name)), device=device)
     dynamics_path = paths.existing(paths.dynamics(name))
@@ -83,9 +94,10 @@ def run(params: Params, paths: Paths) -> dict[str, Any]:
 def _log(report: dict[str, Any]) -> None:
     for mode in ("prior", "posterior"):
         for key, m in report[mode].items():
+            walls = m.get("single_step_wall_crossing")
             log.info(
                 "%-9s %-8s %4d steps: position error TAWM %.3f m, single-step %.3f m, "
-                "no model %.3f m; TAWM within 1/2 sigma %.2f/%.2f; single-step in walls %.0f%%",
+                "no model %.3f m; TAWM within 1/2 sigma %.2f/%.2f%s",
                 mode,
                 key,
                 m["steps"],
@@ -94,7 +106,7 @@ def _log(report: dict[str, Any]) -> None:
                 m["no_model_error_mean"],
                 m["tawm_within_1sigma"],
                 m["tawm_within_2sigma"],
-                100 * m["single_step_wall_crossing"],
+                "" if walls is None else f"; single-step in walls {100 * walls:.0f}%",
             )
             if "replay_error_mean" in m:
                 log.info(
