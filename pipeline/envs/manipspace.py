@@ -375,6 +375,15 @@ class ManipSpaceSpec:
         self._apply_locks(model, data)
         mujoco.mj_forward(model, data)
 
+    def cold(self, state: np.ndarray) -> np.ndarray:
+        """`state [physics_dim]` with the solver's warm start zeroed, as after a reset (the rest
+        exactly as it was): what an evaluation start keeps of OGBench's reset, whose warm start
+        comes from two actions drawn from an unseeded action space (`TaskStart`)."""
+        data = mujoco.MjData(self.model)
+        self.set_physics_state(data, state)
+        data.qacc_warmstart[:] = 0.0
+        return self.physics_state(data)
+
     def state_of_env(self, env: gymnasium.Env) -> np.ndarray:
         """The exact state `[physics_dim]` an OGBench env of this id is in (its own `MjData`
         has no user data: the readings are taken from its data, the button states from the

@@ -246,6 +246,11 @@ def manipulation_episodes(
     `{"ogbench-task1": [...], ...}`: episode k of task K starts from `spec.task_start(K, s)`, its
     reset seed `s` and the episode's own seed drawn from (seed, "ogbench", K, k).
 
+    The start is OGBench's reset state exactly but for the solver's warm start, which OGBench's
+    reset leaves from two unseeded random actions: it is zeroed (`ManipSpaceSpec.cold`), so an
+    episode is a function of its seed (the first step then differs from OGBench's in the last
+    bits of the solver, nothing a success rate could see).
+
     Raises:
         UserError: a task other than `ogbench` (the maze tasks need a maze).
     """
@@ -265,7 +270,7 @@ def manipulation_episodes(
                     start=start.observation,
                     goal=spec.goal_vector(start.goal),
                     seed=episode_seed,
-                    physics=start.physics,
+                    physics=spec.cold(start.physics),
                 )
             )
         out[name] = episodes

@@ -86,8 +86,10 @@ class GoalCost:
 
     @property
     def key(self) -> tuple:
-        """What a captured plan depends on besides the goals' values (dims, scale, penalties)."""
-        return (self.dims, self.scale_values, self.skill_penalty, self.fall_penalty, self.fallen)
+        """What a captured plan depends on besides the goals' values: dims, penalties, fall test
+        and (when there is one) the scale."""
+        key = (self.dims, self.skill_penalty, self.fall_penalty, self.fallen)
+        return key if self.scale_values is None else (*key, self.scale_values)
 
     def with_goals(self, goals: torch.Tensor) -> GoalCost:
         """The same cost with other goals `[B', G]` (e.g. a CUDA graph's static input)."""
