@@ -92,30 +92,37 @@ def run(params: Params, paths: Paths) -> dict[str, Any]:
 
 
 def _log(report: dict[str, Any]) -> None:
+    unit = {"observation units": "obs"}.get(report.get("position_unit", "m"), "m")
     for mode in ("prior", "posterior"):
         for key, m in report[mode].items():
             walls = m.get("single_step_wall_crossing")
             log.info(
-                "%-9s %-8s %4d steps: position error TAWM %.3f m, single-step %.3f m, "
-                "no model %.3f m; TAWM within 1/2 sigma %.2f/%.2f%s",
+                "%-9s %-8s %4d steps: position error TAWM %.3f %s, single-step %.3f %s, "
+                "no model %.3f %s; TAWM within 1/2 sigma %.2f/%.2f%s",
                 mode,
                 key,
                 m["steps"],
                 m["tawm_error_mean"],
+                unit,
                 m["single_step_error_mean"],
+                unit,
                 m["no_model_error_mean"],
+                unit,
                 m["tawm_within_1sigma"],
                 m["tawm_within_2sigma"],
                 "" if walls is None else f"; single-step in walls {100 * walls:.0f}%",
             )
             if "replay_error_mean" in m:
                 log.info(
-                    "%-9s %-8s %4d steps: skill replay error %.3f m (TAWM vs recorded %.3f m, "
-                    "no model %.3f m)",
+                    "%-9s %-8s %4d steps: skill replay error %.3f %s (TAWM vs recorded %.3f %s, "
+                    "no model %.3f %s)",
                     mode,
                     key,
                     m["steps"],
                     m["replay_error_mean"],
+                    unit,
                     m["tawm_recorded_error_mean"],
+                    unit,
                     m["no_model_recorded_error_mean"],
+                    unit,
                 )
