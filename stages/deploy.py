@@ -255,7 +255,13 @@ def _optimism(
     if setup.plan_state_steps is None or setup.replan_every is None:
         return None
     return {
-        task: optimism_gap(r, setup.plan_state_steps, setup.replan_every, spec.goal_dims)
+        task: optimism_gap(
+            r,
+            setup.plan_state_steps,
+            setup.replan_every,
+            spec.goal_dims,
+            getattr(spec, "goal_scale", None),
+        )
         for task, r in results.items()
     }
 

@@ -16,14 +16,13 @@ from typing import Any
 from pipeline.config import Params
 from pipeline.devices import resolve_device, torch_threads
 from pipeline.envs.disturbance import Pushes
+from pipeline.envs.manipspace import ManipSpaceSpec
 from pipeline.envs.spec import make_env_spec
-from pipeline.errors import UserError
 from pipeline.evaluation.compat import check_same_environment
 from pipeline.evaluation.open_loop import run_open_loop
 from pipeline.evaluation.open_loop_metrics import (
     end_position_table,
     error_table,
-    has_walls,
     open_loop_report,
 )
 from pipeline.model.checkpoint import load_dynamics, load_model, skill_horizon
@@ -59,11 +58,6 @@ def run(params: Params, paths: Paths) -> dict[str, Any]:
     segments = load_segments(paths.existing(paths.segments(name)))
     info = segments.info
     spec = make_env_spec(info.env_id, info.env_kwargs)
-    if cfg.record_starts and not has_walls(spec.layout):
-        raise UserError(
-            f"validate.record_starts: the validate recording draws a maze, and {info.env_id} "
-            "is not one; set validate.record_starts=0"
-        )
     device = resolve_device(cfg.device, "validate.device")
     model, meta = load_model(paths.existing(paths.model(name)), device=device)
     dynamics_path = paths.existing(paths.dynamics(name))
@@ -80,7 +74,13 @@ def run(params: Params, paths: Paths) -> dict[str, Any]:
     with paths.staged(outputs) as out:  # all of them or none (no CSVs beside an old report)
         write_csv(out.file(csvs["errors"]), error_table(report))
         write_csv(out.file(csvs["ends"]), end_position_table(result, list(spec.goal_dims)))
-        if cfg.record_starts:
+        if cfg.record_starts and isinstance(spec, ManipSpaceSpec):
+            from pipeline.viz.manip_validate import write_validate_recording
+
+            write_validate_recording(
+                out.file(recording_path(paths)), result, spec, cfg.record_starts
+            )
+        elif cfg.record_starts:
             from pipeline.viz.validate import write_recording
 
             write_recording(out.file(recording_path(paths)), result, spec, cfg.record_starts)

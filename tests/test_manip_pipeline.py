@@ -222,7 +222,7 @@ TINY = [
     "validate.skills=2",
     "validate.repeats=1",
     "validate.particles=4",
-    "validate.record_starts=0",
+    "validate.record_starts=1",
     "deploy.tasks=[ogbench]",
     "deploy.agents=[oposm,gcbc]",
     "deploy.episodes=1",
@@ -264,6 +264,8 @@ def test_cube_single_runs_end_to_end(tiny_run, cube):
     assert "min_wall_clearance" not in ingested  # no maze geometry in a manipulation report
     validated = json.loads((paths.root / "reports/validate/report.json").read_text())
     assert "real_wall_crossing" not in validated and validated["prior"]["skills_2"]["steps"] == 10
+    assert validated["position_unit"] == "observation units"
+    assert (paths.root / "recordings/validate.rrd").stat().st_size > 0  # its 3-D view
     assert report["tasks"] == [*(f"ogbench-task{k}" for k in range(1, 6)), "ogbench"]
     assert report["distance_unit"] == "success tolerances" and report["max_steps"] == 6
     rows = json.loads((paths.root / "reports/deploy/episodes.json").read_text())

@@ -424,6 +424,13 @@ class ManipSpaceSpec:
 
     # Observation ------------------------------------------------------------------------------
 
+    def observed_cubes(self, observations: np.ndarray) -> np.ndarray:
+        """`[..., n_cubes, 3]` cube positions (m) read from observations `[..., state_dim]` (or
+        predicted ones): the inverse of the observation's `(p - [0.425, 0, 0]) * 10`."""
+        cols = [PROPRIO_DIM + CUBE_DIM * i + k for i in range(self.n_cubes) for k in range(3)]
+        cubes = np.asarray(observations, dtype=np.float64)[..., cols]
+        return XYZ_CENTER + cubes.reshape(*cubes.shape[:-1], self.n_cubes, 3) / XYZ_SCALE
+
     def observe(self, data: mujoco.MjData) -> np.ndarray:
         """OGBench's observation `[state_dim]` (float64) of `data` (of `self.model`), bit for bit
         what the env returns in the same state."""

@@ -12,6 +12,8 @@ window have no geometry here: their goal states and where they are at the end ar
 and their part of the distance is in the distance plot.
 
 The overview holds the success table and the bar chart of the maze overview, without a map.
+
+Validate's 3-D view is `pipeline.viz.manip_validate`.
 """
 
 from __future__ import annotations
@@ -50,9 +52,7 @@ def to_metres(observed: np.ndarray) -> np.ndarray:
 
 def cube_positions(states: np.ndarray, spec: ManipSpaceSpec) -> np.ndarray:
     """`[..., n_cubes, 3]` cube positions (m) from observations `[..., state_dim]`."""
-    dims = list(spec.goal_dims[: 3 * spec.n_cubes])
-    cubes = np.asarray(states)[..., dims]
-    return to_metres(cubes.reshape(*cubes.shape[:-1], spec.n_cubes, 3))
+    return spec.observed_cubes(states)
 
 
 def _times(steps: np.ndarray, dt: float) -> list[rr.TimeColumn]:

@@ -18,9 +18,10 @@ module turns its episodes into the dataset conventions (`pipeline/dataset.py`) a
 OGBench's sizes: 1000 episodes x 1001 steps per dataset (`ingest.episodes`, `ingest.episode_steps`).
 
 Importing OGBench's downloaded manipulation `.npz` files is not supported: they hold `qpos` and
-`qvel` but not the solver's warm start, the pinch-site and contact readings the next observation
-and action are computed from (one physics step stale, `pipeline.envs.manipspace`), so no state of
-theirs can be restored exactly; `open_manipulation` refuses a `path`.
+`qvel` (float32; scene: `button_states`) but not the solver's warm start nor the pinch-site and
+contact readings the next observation and action are computed from (one physics step stale,
+`pipeline.envs.manipspace`), so no state of theirs can be restored exactly; `open_manipulation`
+refuses a `path`.
 """
 
 from __future__ import annotations
