@@ -390,7 +390,6 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
             "episodes": len(rows),
             "episodes_per_task": cfg.episodes,
             "success_radius": cfg.success_radius,
-            "distance_unit": GoalRule.of_spec(spec).unit,
             "mass_scale": cfg.mass_scale,
             "disturbance": pushes.to_dict(),
             "max_steps": max_steps,
@@ -400,6 +399,8 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
             "recordings": str(recordings),
             "recorded_episodes": recorded,
         }
+        if isinstance(spec, ManipSpaceSpec):  # distances in success tolerances, not metres
+            report["distance_unit"] = GoalRule.of_spec(spec).unit
         if "oposm" in by_agent and "llp" in by_agent:
             report["oposm_vs_llp"] = compare_planners(report, "oposm", "llp")
         out.write_json(paths.live("deploy") / "episodes.json", rows)

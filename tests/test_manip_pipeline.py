@@ -199,6 +199,8 @@ def test_manipulation_ingest_refuses_what_it_cannot_do(tmp_path):
 
 # --- end to end ------------------------------------------------------------------------------
 
+TRAINED = ("train", "dynamics", "bc", "gcbc")
+
 TINY = [
     "ingest.name=cube",
     "ingest.source=ogbench",
@@ -210,40 +212,45 @@ TINY = [
     "segment.split.train=0.34",
     "segment.split.validation=0.33",
     "segment.split.test=0.33",
-    *(f"{s}.{k}" for s in ("train", "dynamics", "gcbc") for k in ("max_steps=3", "eval_every=3")),
-    *(f"{s}.{k}" for s in ("train", "dynamics", "gcbc") for k in ("hidden=16", "batch_size=8")),
+    *(f"{s}.{k}" for s in TRAINED for k in ("max_steps=3", "eval_every=3")),
+    *(f"{s}.{k}" for s in TRAINED for k in ("hidden=16", "batch_size=8")),
     "train.z_dim=4",
     "train.val_windows=8",
     "train.checkpoint_every=3",
     "train.threads=1",
-    "dynamics.val_transitions=8",
-    "gcbc.val_transitions=8",
+    *(f"{s}.val_transitions=8" for s in ("dynamics", "bc", "gcbc")),
     "validate.starts=2",
     "validate.skills=2",
     "validate.repeats=1",
     "validate.particles=4",
     "validate.record_starts=1",
     "deploy.tasks=[ogbench]",
-    "deploy.agents=[oposm,gcbc]",
+    "deploy.agents=[oposm,llp,gcbc]",
     "deploy.episodes=1",
     "deploy.max_steps=6",
     "deploy.planner.horizon=2",
     "deploy.planner.candidates=8",
     "deploy.planner.elites=2",
     "deploy.planner.iterations=2",
+    "deploy.llp.horizon=4",
+    "deploy.llp.execute=2",
+    "deploy.llp.candidates=8",
+    "deploy.llp.elites=2",
+    "deploy.llp.iterations=2",
     "deploy.record_episodes=1",
 ]
 
 
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory):
-    """Every stage on 3 x 40 steps of cube-single play data, models trained 3 steps."""
-    from stages import deploy, dynamics, gcbc, ingest, segment, train, validate
+    """Every stage on 3 x 40 steps of cube-single play data, models trained 3 steps; OPOSM, LLP
+    and GCBC deployed on one 6-step episode of each task."""
+    from stages import bc, deploy, dynamics, gcbc, ingest, segment, train, validate
 
     params = load_params(ROOT / "params.yaml", TINY)
     paths = Paths(tmp_path_factory.mktemp("manip") / "data")
     ingested = ingest.run(params, paths, progress=False)
-    for stage in (segment, train, dynamics, gcbc, validate):
+    for stage in (segment, train, dynamics, bc, gcbc, validate):
         stage.run(params, paths)
     report = deploy.run(params, paths, progress=False)
     return params, paths, ingested, report
@@ -269,7 +276,7 @@ def test_cube_single_runs_end_to_end(tiny_run, cube):
     assert report["tasks"] == [*(f"ogbench-task{k}" for k in range(1, 6)), "ogbench"]
     assert report["distance_unit"] == "success tolerances" and report["max_steps"] == 6
     rows = json.loads((paths.root / "reports/deploy/episodes.json").read_text())
-    assert len(rows) == 2 * 5 and all(r["error"] is None and r["steps"] == 6 for r in rows)
+    assert len(rows) == 3 * 5 and all(r["error"] is None and r["steps"] == 6 for r in rows)
     starts = manipulation_episodes(cube, ["ogbench"], 1, params.deploy.seed)
     for r in rows:  # every agent starts each task from the same exact state
         expected = starts[r["task"]][0]
@@ -277,6 +284,7 @@ def test_cube_single_runs_end_to_end(tiny_run, cube):
         assert np.allclose(r["goal"], expected.goal) and r["min_distance"] > 1.0
     oposm = [r for r in rows if r["agent"] == "oposm"]
     assert all(r["replans"] == 2 for r in oposm)  # tau = window - 1 = 5 steps: replans at 0, 5
+    assert all(r["replans"] == 3 for r in rows if r["agent"] == "llp")  # every 2: 0, 2, 4
     recordings = sorted(p.name for p in (paths.root / "recordings/deploy").iterdir())
     assert "overview.rrd" in recordings and "oposm-ogbench-task3-0000.rrd" in recordings
-    assert len(recordings) == 11
+    assert len(recordings) == 16
