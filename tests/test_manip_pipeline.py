@@ -149,6 +149,30 @@ def test_the_goal_rule_is_ogbench_success_in_manipulation_and_the_radius_in_maze
     assert maze.success(state, None, d, radius=0.5) and not maze.success(state, None, d, 0.4)
 
 
+@pytest.mark.parametrize("env_id", ["cube-double-v0", "scene-v0"])
+def test_a_state_at_the_goal_succeeds_and_one_object_off_fails(env_id):
+    """Every task: the start is not at the goal; the start with its goal dims set to the goal
+    is; then one object moved out of its tolerance (the last cube 0.05 m; the scene's window
+    0.05 of its joint) is not."""
+    spec = manipspace_spec(env_id)
+    rule = GoalRule.of_spec(spec)
+    for task in range(1, 6):
+        start = spec.task_start(task, seed=task)
+        goal = spec.goal_vector(start.goal)
+        at_goal = start.observation.copy()
+        at_goal[list(spec.goal_dims)] = goal
+        assert rule.success(at_goal, goal, rule.distance(at_goal, goal), 0.0)
+        assert rule.distance(at_goal, goal) == 0.0
+        assert not rule.success(start.observation, goal, 1.0, radius=100.0)
+        off = at_goal.copy()
+        if spec.scene:
+            off[spec.goal_dims[-1]] += 0.05 * 15  # window joint units in the observation
+        else:
+            off[spec.goal_dims[3 * spec.n_cubes - 3]] += 0.5  # 0.05 m along x
+        assert rule.distance(off, goal) == pytest.approx(1.25)
+        assert not rule.success(off, goal, rule.distance(off, goal), radius=100.0)
+
+
 # --- tasks -----------------------------------------------------------------------------------
 
 
@@ -288,3 +312,18 @@ def test_cube_single_runs_end_to_end(tiny_run, cube):
     recordings = sorted(p.name for p in (paths.root / "recordings/deploy").iterdir())
     assert "overview.rrd" in recordings and "oposm-ogbench-task3-0000.rrd" in recordings
     assert len(recordings) == 16
+
+
+@pytest.mark.slow
+def test_deploy_refuses_maze_only_settings_on_a_manipulation_env(tiny_run):
+    from stages import deploy
+
+    params, paths, _, _ = tiny_run
+    cases = {
+        "deploy.tasks=[ogbench,corners]": "maze tasks",
+        "deploy.subgoals.enabled=true": "subgoal graph",
+        "deploy.agents=[expert]": "no expert agent",
+    }
+    for override, expected in cases.items():
+        changed = load_params(ROOT / "params.yaml", [*TINY, override])
+        assert expected in one_line_error(lambda p=changed: deploy.run(p, paths, progress=False))
