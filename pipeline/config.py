@@ -438,7 +438,8 @@ class PlannerParams(_Section):
         "torch",
         description="What computes the rollout and goal cost in the search: torch (an "
         "operation per layer and skill), or triton: one fused kernel per CEM iteration (CUDA "
-        "only; costs with a fall penalty stay on torch). The same plans up to rounding.",
+        "only; costs with a fall penalty or a per-dim goal scale, as on OGBench's manipulation "
+        "envs, stay on torch). The same plans up to rounding.",
     )
 
     @model_validator(mode="after")
