@@ -221,6 +221,24 @@ def test_manipulation_ingest_refuses_what_it_cannot_do(tmp_path):
     assert not (tmp_path / "data/demos").exists() or not any((tmp_path / "data/demos").iterdir())
 
 
+@pytest.mark.slow
+def test_generating_in_two_processes_gives_the_same_dataset():
+    """Each episode is a function of its own seed: workers (each episode after another one than
+    in one process) change nothing."""
+    from pipeline.sources.ogbench.manipulation import open_manipulation
+
+    def episodes(workers: int):
+        data = open_manipulation("cube-single-v0", "play", 3, 25, 4, "d", workers=workers)
+        return list(data.episodes)
+
+    one, two = episodes(1), episodes(2)
+    assert len(one) == len(two) == 3
+    for a, b in zip(one, two, strict=True):
+        for name in ("observations", "actions", "physics", "time", "goal_reached"):
+            assert np.array_equal(getattr(a, name), getattr(b, name)), name
+    assert not np.array_equal(one[0].actions, one[1].actions)
+
+
 # --- end to end ------------------------------------------------------------------------------
 
 TRAINED = ("train", "dynamics", "bc", "gcbc")

@@ -93,10 +93,12 @@ def collection_env(env_id: str) -> gymnasium.Env:
     )
 
 
+@functools.cache
 def _oracles(
     env: gymnasium.Env, scene: bool, recipe: str, noise: float, smoothing: float, min_norm: float
 ) -> dict[str, Any]:
-    """The script's oracles: one per subtask kind the env draws."""
+    """The script's oracles: one per subtask kind the env draws (one set per process and
+    settings: each episode resets the ones it uses)."""
     kinds = SUBTASKS if scene else ("cube",)
     if recipe == "play":
         from ogbench.manipspace.oracles.plan.button_plan import ButtonPlanOracle
@@ -173,19 +175,48 @@ def iter_generate(
 ) -> Iterator[dict[str, Any]]:
     """`generate`'s episodes one at a time, as they are made (the same episodes). The arguments
     are checked when the first episode is asked for."""
+    check_sizes(env_id, recipe, episodes, episode_steps)
+    for episode_seed in episode_seeds(seed, episodes):
+        yield generate_episode(
+            env_id, recipe, episode_steps, episode_seed, noise, noise_smoothing, min_norm,
+            p_random_action,
+        )  # fmt: skip
+
+
+def check_sizes(env_id: str, recipe: str, episodes: int, episode_steps: int) -> None:
+    """A one-line `UserError` for an unknown env id or recipe, or a size below 1."""
     check_manipspace_id(env_id)
     if recipe not in RECIPES:
         raise UserError(f"unknown manipulation recipe {recipe!r}; use one of: {', '.join(RECIPES)}")
     if episodes < 1 or episode_steps < 1:
         raise UserError(f"episodes ({episodes}) and episode_steps ({episode_steps}) must be >= 1")
+
+
+def episode_seeds(seed: int, episodes: int) -> list[np.random.SeedSequence]:
+    """The seeds of a dataset's episodes: episode k is a function of `seed` and k alone."""
+    return np.random.SeedSequence(seed).spawn(episodes)
+
+
+def generate_episode(
+    env_id: str,
+    recipe: str,
+    episode_steps: int,
+    episode_seed: np.random.SeedSequence,
+    noise: float = NOISE,
+    noise_smoothing: float = NOISE_SMOOTHING,
+    min_norm: float = MIN_NORM,
+    p_random_action: float | None = None,
+) -> dict[str, Any]:
+    """One episode of `generate` (its `episode_seeds` entry), in this process's collection env.
+
+    An episode does not depend on the ones generated before it in the same env (each starts
+    with a seeded reset and fresh oracle resets; tests/test_manip_pipeline.py), so a dataset can
+    be generated in several processes."""
     spec = manipspace_spec(env_id)
     env = collection_env(env_id)
     p_random = P_RANDOM_ACTION[recipe] if p_random_action is None else float(p_random_action)
     agents = _oracles(env, spec.scene, recipe, noise, noise_smoothing, min_norm)
-    for episode_seed in np.random.SeedSequence(seed).spawn(episodes):
-        yield _healthy_episode(
-            env, spec, agents, recipe, episode_steps, episode_seed, noise, p_random
-        )
+    return _healthy_episode(env, spec, agents, recipe, episode_steps, episode_seed, noise, p_random)
 
 
 def _healthy_episode(

@@ -97,7 +97,7 @@ def open_ogbench(cfg: IngestParams, progress: bool = False) -> ImportedDataset:
             )
         return open_manipulation(
             og.env_id, og.dataset_type, cfg.episodes, cfg.episode_steps, cfg.seed, cfg.name,
-            og.noise, og.path, progress,
+            og.noise, og.path, progress, og.workers,
         )  # fmt: skip
     if og.path:
         if og.expert:
