@@ -26,7 +26,9 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from pipeline.envs.manipspace import (
+    DRAWER_SCALE,
     SUCCESS_TOLERANCE,
+    WINDOW_SCALE,
     WORKSPACE_BOUNDS,
     XYZ_CENTER,
     XYZ_SCALE,
@@ -170,11 +172,12 @@ def _log_plans(rec: rr.RecordingStream, result: EpisodeResult, spec: ManipSpaceS
 
 
 def _objects(state: np.ndarray, spec: ManipSpaceSpec) -> str:
-    """The scene's buttons, drawer and window in a state (observation units as the goal)."""
+    """The scene's buttons, drawer and window (joint positions, m) in a state `[state_dim]`."""
     if not spec.scene:
         return ""
     at = np.asarray(state)[list(spec.goal_dims[3 * spec.n_cubes :])]
-    return f"buttons {at[0]:.0f}, {at[1]:.0f}; drawer {at[2]:.2f}, window {at[3]:.2f}"
+    drawer, window = at[2] / DRAWER_SCALE, at[3] / WINDOW_SCALE
+    return f"buttons {at[0]:.0f}, {at[1]:.0f}; drawer {drawer:.3f} m, window {window:.3f} m"
 
 
 def _summary(result: EpisodeResult, spec: ManipSpaceSpec) -> str:
