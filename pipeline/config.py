@@ -21,6 +21,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from pipeline.envs.expert import ExpertConfig
+from pipeline.envs.manipspace import MANIPSPACE_ENVS
 from pipeline.envs.maze import SUPPORTED_ENVS
 from pipeline.envs.ogbench import OGBENCH_MAZES
 from pipeline.errors import UserError
@@ -93,23 +94,27 @@ class DisturbanceParams(_Section):
 
 
 class OGBenchSourceParams(_Section):
-    """`ingest.ogbench`: OGBench maze data (`ingest.source: ogbench`), generated with OGBench's
+    """`ingest.ogbench`: OGBench data (`ingest.source: ogbench`), generated with OGBench's
     recipe (sizes: `ingest.episodes` x `ingest.episode_steps`, `ingest.seed`; ant mazes with
-    our ant expert) or imported from a downloaded `.npz` (`path`)."""
+    our ant expert; manipulation with OGBench's scripted oracles) or, for the mazes, imported
+    from a downloaded `.npz` (`path`)."""
 
-    env_id: Literal[tuple(OGBENCH_MAZES)] = Field(  # type: ignore[valid-type]
+    env_id: Literal[(*OGBENCH_MAZES, *MANIPSPACE_ENVS)] = Field(  # type: ignore[valid-type]
         "pointmaze-medium-v0",
-        description="The OGBench maze: pointmaze-* or antmaze-* (medium, large, giant).",
+        description="The OGBench env: pointmaze-* or antmaze-* (medium, large, giant, "
+        "teleport), or a manipulation env (cube-single-v0, cube-double-v0, scene-v0).",
     )
-    dataset_type: Literal["navigate", "stitch", "explore"] = Field(
+    dataset_type: Literal["navigate", "stitch", "explore", "play", "noisy"] = Field(
         "navigate",
-        description="OGBench's recipe: navigate (new goal on reach), stitch (goals 4 cells "
-        "away), explore (random directions).",
+        description="OGBench's recipe. Mazes: navigate (new goal on reach), stitch (goals 4 "
+        "cells away), explore (random directions); manipulation: play (plan oracles, smoothed "
+        "noise) or noisy (Markov oracles, Gaussian noise, 10 % random actions).",
     )
     noise: float | None = Field(
         None,
         ge=0,
-        description="Action noise std; null: OGBench's (point 0.5, ant 0.2; explore 1.0).",
+        description="Action noise std; null: OGBench's (point 0.5, ant 0.2; explore 1.0; "
+        "manipulation 0.1: play's plan noise, noisy's largest per-episode std).",
     )
     expert: str | None = Field(
         None,
@@ -433,7 +438,8 @@ class PlannerParams(_Section):
         "torch",
         description="What computes the rollout and goal cost in the search: torch (an "
         "operation per layer and skill), or triton: one fused kernel per CEM iteration (CUDA "
-        "only; costs with a fall penalty stay on torch). The same plans up to rounding.",
+        "only; costs with a fall penalty or a per-dim goal scale, as on OGBench's manipulation "
+        "envs, stay on torch). The same plans up to rounding.",
     )
 
     @model_validator(mode="after")

@@ -1,5 +1,6 @@
-"""Deploy stage: the agents of `deploy.agents` in the maze of the training data, on the same
-episodes; success rates, planning cost, recordings.
+"""Deploy stage: the agents of `deploy.agents` in the environment of the training data (a maze,
+or one of OGBench's manipulation envs, on its five object-goal tasks), on the same episodes;
+success rates, planning cost, recordings.
 
 Agents: `oposm` (skill MPC with the skill model, `data/models/<name>/`), `llp` (low-level planning
 with the single-step model `<name>-dynamics/` and the BC policy `<name>-bc/`), `gcbc` (the
@@ -29,6 +30,7 @@ from pipeline.envs.ant_expert import load_actor
 from pipeline.envs.batch import BatchSim
 from pipeline.envs.disturbance import Pushes
 from pipeline.envs.expert import ExpertConfig
+from pipeline.envs.manipspace import ManipSpaceSpec
 from pipeline.envs.ogbench import OGBenchMazeSpec
 from pipeline.envs.ogbench_oracle import POINT_NOISE, OGBenchOracleAgent
 from pipeline.envs.perturb import scale_mass
@@ -37,13 +39,16 @@ from pipeline.errors import UserError
 from pipeline.evaluation.compat import check_model_dims, check_same_environment
 from pipeline.evaluation.episodes import EpisodeResult, PlanCall, RunConfig, run_episodes
 from pipeline.evaluation.flops import replan_flops
+from pipeline.evaluation.goals import GoalRule
 from pipeline.evaluation.report import compare_planners
 from pipeline.evaluation.stats import latency_summary, optimism_gap, task_summary
 from pipeline.evaluation.tasks import (
     OGBENCH_PREFIX,
     EpisodeSpec,
     MazeTasks,
+    check_manipulation_tasks,
     check_task,
+    manipulation_episodes,
     train_locations,
 )
 from pipeline.model.checkpoint import load_dynamics, load_model, load_policy, skill_horizon
@@ -56,6 +61,7 @@ from pipeline.planning.skills import SkillPlanner
 from pipeline.planning.subgoals import SubgoalGraph
 from pipeline.segments import Segments, load_segments
 from pipeline.viz.deploy import recording_name, write_episode_recording
+from pipeline.viz.manip import write_manip_episode_recording, write_manip_overview
 from pipeline.viz.overview import write_overview
 from stages.report import report_files, write_report
 
@@ -95,6 +101,11 @@ def _oposm(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, devi
         )
     planner = SkillPlanner(model, planner_config(cfg.planner))
     subgoals = None
+    if cfg.subgoals.enabled and isinstance(spec, ManipSpaceSpec):
+        raise UserError(
+            f"deploy.subgoals: the subgoal graph is a maze's (cells of the plane); {spec.env_id} "
+            "plans to its object goals directly: set deploy.subgoals.enabled=false"
+        )
     if cfg.subgoals.enabled:
         sub = cfg.subgoals
         subgoals = SubgoalGraph.from_segments(
@@ -111,6 +122,7 @@ def _oposm(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, devi
             spec.goal_dims,
             subgoals,
             getattr(spec, "fallen", None),
+            getattr(spec, "goal_scale", None),
         ),  # fmt: skip
         cfg.replan_every or skill_horizon(meta, model_dir),
         {"model": str(model_dir), "model_step": meta.get("step"), **cfg.planner.model_dump()}
@@ -131,7 +143,7 @@ def _llp(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, device
     _check(bc_meta, segments, spec, (p.state_dim, p.action_dim), f"the policy in {bc_dir}")
     planner = LowLevelPlanner(policy, dynamics, llp_config(cfg))
     return AgentSetup(
-        LowLevelMPC(planner, spec.goal_dims),
+        LowLevelMPC(planner, spec.goal_dims, getattr(spec, "goal_scale", None)),
         cfg.execute,
         {"dynamics": str(dyn_dir), "bc": str(bc_dir), **cfg.model_dump()},
         plan_state_steps=1,  # an action
@@ -177,6 +189,11 @@ def _ogbench_oracle(params: Params, segments: Segments, spec: EnvSpec) -> AgentS
 
 
 def _expert(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, device) -> AgentSetup:
+    if isinstance(spec, ManipSpaceSpec):
+        raise UserError(
+            f"no expert agent for {spec.env_id}: OGBench's manipulation oracles pursue the "
+            "subtasks the env draws, not an evaluation task's goal; use oposm, llp or gcbc"
+        )
     if isinstance(spec, OGBenchMazeSpec):
         return _ogbench_oracle(params, segments, spec)
     recorded = (segments.info.generator or {}).get("expert")
@@ -215,7 +232,11 @@ def _record(
     """Write the recordings of the episodes numbered below `deploy.record_episodes`."""
     chosen = [r for r in results if r.spec.index < cfg.record_episodes]
     for r in chosen:
-        write_episode_recording(directory / f"{recording_name(r)}.rrd", r, spec, radius)
+        path = directory / f"{recording_name(r)}.rrd"
+        if isinstance(spec, ManipSpaceSpec):
+            write_manip_episode_recording(path, r, spec)
+        else:
+            write_episode_recording(path, r, spec, radius)
     return len(chosen)
 
 
@@ -234,7 +255,13 @@ def _optimism(
     if setup.plan_state_steps is None or setup.replan_every is None:
         return None
     return {
-        task: optimism_gap(r, setup.plan_state_steps, setup.replan_every, spec.goal_dims)
+        task: optimism_gap(
+            r,
+            setup.plan_state_steps,
+            setup.replan_every,
+            spec.goal_dims,
+            getattr(spec, "goal_scale", None),
+        )
         for task, r in results.items()
     }
 
@@ -294,6 +321,8 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
     device = resolve_device(cfg.device, "deploy.device")
     segments = load_segments(paths.existing(paths.segments(name)))
     spec = make_env_spec(segments.info.env_id, segments.info.env_kwargs)
+    if isinstance(spec, ManipSpaceSpec):
+        check_manipulation_tasks(spec.env_id, cfg.tasks)  # before any model is loaded
     setups = {a: build_agent(a, params, paths, segments, spec, device) for a in cfg.agents}
 
     started = time.perf_counter()
@@ -301,11 +330,15 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
     pushes = Pushes.of_dataset(segments.info.generator)  # the data's, if it was pushed
     envs = BatchSim(spec, n_envs, [scale_mass(spec.model, cfg.mass_scale)] * n_envs, pushes)
     goal = None if cfg.goal is None else np.asarray(cfg.goal, dtype=np.float64)
-    locations = train_locations(segments, spec.goal_dims)
-    tasks = MazeTasks(
-        spec.layout, locations, cfg.start_noise, goal, cfg.seed, spec.start_observation, spec.env_id
-    )
-    specs = tasks.expand(cfg.tasks, cfg.episodes)  # checks first; ogbench: its five tasks
+    if isinstance(spec, ManipSpaceSpec):  # OGBench's five tasks from exact start states
+        specs = manipulation_episodes(spec, cfg.tasks, cfg.episodes, cfg.seed)
+    else:
+        locations = train_locations(segments, spec.goal_dims)
+        tasks = MazeTasks(
+            spec.layout, locations, cfg.start_noise, goal, cfg.seed, spec.start_observation,
+            spec.env_id,
+        )  # fmt: skip
+        specs = tasks.expand(cfg.tasks, cfg.episodes)  # checks first; ogbench: its five tasks
     _check_ogbench_radius(cfg, spec)
     reported = [*specs, *(["ogbench"] if "ogbench" in cfg.tasks else [])]
     max_steps = cfg.max_steps or spec.max_episode_steps
@@ -342,7 +375,10 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
             }
             rows += [r.to_json() for task in specs for r in results[task]]
             episodes += [r for task in specs for r in results[task]]
-        write_overview(tmp / "overview.rrd", episodes, spec)
+        if isinstance(spec, ManipSpaceSpec):
+            write_manip_overview(tmp / "overview.rrd", episodes, spec)
+        else:
+            write_overview(tmp / "overview.rrd", episodes, spec)
 
         report: dict[str, Any] = {
             "dataset": name,
@@ -363,6 +399,8 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
             "recordings": str(recordings),
             "recorded_episodes": recorded,
         }
+        if isinstance(spec, ManipSpaceSpec):  # distances in success tolerances, not metres
+            report["distance_unit"] = GoalRule.of_spec(spec).unit
         if "oposm" in by_agent and "llp" in by_agent:
             report["oposm_vs_llp"] = compare_planners(report, "oposm", "llp")
         out.write_json(paths.live("deploy") / "episodes.json", rows)

@@ -13,6 +13,7 @@ from pipeline.dataset import DatasetInfo, Episode
 from pipeline.envs.checks import DatasetReport, check_maze_dataset, raise_for_problems
 from pipeline.envs.disturbance import Pushes
 from pipeline.envs.generate import dataset_info, generate_episodes
+from pipeline.envs.manipspace import is_manipspace
 from pipeline.envs.spec import check_physics_dim
 from pipeline.errors import UserError
 from pipeline.paths import Paths
@@ -73,7 +74,8 @@ def _source_file(params: Params) -> str | None:
 
 def _check(path: Path, info: DatasetInfo, max_fallen_share: float) -> DatasetReport | None:
     """Maze checks of the written file: all of them for the built-in expert, OGBench's own for
-    OGBench data (`check_ogbench_dataset`; ant falls up to `max_fallen_share` of the steps); for
+    OGBench data (`check_ogbench_dataset`; ant falls up to `max_fallen_share` of the steps; the
+    manipulation envs': `check_manipulation_dataset`, states restored exactly); for
     another import, only when its env is a PointMaze we simulate (walls, bounds, jumps, physics,
     clock; episodes are not assumed continuous and someone else's demonstrator is not judged on
     its goal rate)."""
@@ -81,6 +83,10 @@ def _check(path: Path, info: DatasetInfo, max_fallen_share: float) -> DatasetRep
 
     if info.source == "maze":
         return check_maze_dataset(iter_episodes(path), info)
+    if info.source == "ogbench" and is_manipspace(info.env_id):
+        from pipeline.sources.ogbench.manipulation import check_manipulation_dataset
+
+        return check_manipulation_dataset(iter_episodes(path), info)
     if info.source == "ogbench":
         from pipeline.sources.ogbench import check_ogbench_dataset
 

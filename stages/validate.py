@@ -16,10 +16,15 @@ from typing import Any
 from pipeline.config import Params
 from pipeline.devices import resolve_device, torch_threads
 from pipeline.envs.disturbance import Pushes
+from pipeline.envs.manipspace import ManipSpaceSpec
 from pipeline.envs.spec import make_env_spec
 from pipeline.evaluation.compat import check_same_environment
 from pipeline.evaluation.open_loop import run_open_loop
-from pipeline.evaluation.open_loop_metrics import end_position_table, error_table, open_loop_report
+from pipeline.evaluation.open_loop_metrics import (
+    end_position_table,
+    error_table,
+    open_loop_report,
+)
 from pipeline.model.checkpoint import load_dynamics, load_model, skill_horizon
 from pipeline.paths import Paths
 from pipeline.segments import load_segments
@@ -69,7 +74,13 @@ def run(params: Params, paths: Paths) -> dict[str, Any]:
     with paths.staged(outputs) as out:  # all of them or none (no CSVs beside an old report)
         write_csv(out.file(csvs["errors"]), error_table(report))
         write_csv(out.file(csvs["ends"]), end_position_table(result, list(spec.goal_dims)))
-        if cfg.record_starts:
+        if cfg.record_starts and isinstance(spec, ManipSpaceSpec):
+            from pipeline.viz.manip_validate import write_validate_recording
+
+            write_validate_recording(
+                out.file(recording_path(paths)), result, spec, cfg.record_starts
+            )
+        elif cfg.record_starts:
             from pipeline.viz.validate import write_recording
 
             write_recording(out.file(recording_path(paths)), result, spec, cfg.record_starts)
@@ -81,29 +92,37 @@ def run(params: Params, paths: Paths) -> dict[str, Any]:
 
 
 def _log(report: dict[str, Any]) -> None:
+    unit = {"observation units": "obs"}.get(report.get("position_unit", "m"), "m")
     for mode in ("prior", "posterior"):
         for key, m in report[mode].items():
+            walls = m.get("single_step_wall_crossing")
             log.info(
-                "%-9s %-8s %4d steps: position error TAWM %.3f m, single-step %.3f m, "
-                "no model %.3f m; TAWM within 1/2 sigma %.2f/%.2f; single-step in walls %.0f%%",
+                "%-9s %-8s %4d steps: position error TAWM %.3f %s, single-step %.3f %s, "
+                "no model %.3f %s; TAWM within 1/2 sigma %.2f/%.2f%s",
                 mode,
                 key,
                 m["steps"],
                 m["tawm_error_mean"],
+                unit,
                 m["single_step_error_mean"],
+                unit,
                 m["no_model_error_mean"],
+                unit,
                 m["tawm_within_1sigma"],
                 m["tawm_within_2sigma"],
-                100 * m["single_step_wall_crossing"],
+                "" if walls is None else f"; single-step in walls {100 * walls:.0f}%",
             )
             if "replay_error_mean" in m:
                 log.info(
-                    "%-9s %-8s %4d steps: skill replay error %.3f m (TAWM vs recorded %.3f m, "
-                    "no model %.3f m)",
+                    "%-9s %-8s %4d steps: skill replay error %.3f %s (TAWM vs recorded %.3f %s, "
+                    "no model %.3f %s)",
                     mode,
                     key,
                     m["steps"],
                     m["replay_error_mean"],
+                    unit,
                     m["tawm_recorded_error_mean"],
+                    unit,
                     m["no_model_recorded_error_mean"],
+                    unit,
                 )

@@ -2,8 +2,12 @@
 
 Every slot has its own `MjData`; each may run its own `MjModel` (a model variant, e.g. another
 mass), otherwise all share the spec's nominal model. The environment-specific parts (observation,
-one control step) come from the `EnvSpec`, so for PointMaze a step is `step_point_mass`, bit for
-bit gymnasium's `env.step` (tests/test_envs.py, tests/test_deploy.py).
+one control step, what a physics state is and how it is restored) come from the `EnvSpec`, so for
+PointMaze a step is `step_point_mass`, bit for bit gymnasium's `env.step` (tests/test_envs.py,
+tests/test_deploy.py), and for OGBench's manipulation envs `ManipSpaceSpec.control_step`, bit for
+bit theirs. A spec's step may write into the model it is given (the scene writes the drawer and
+window damping its button states imply): it writes them before every step, from the slot's own
+state, so slots sharing one model stay independent (tests/test_manip_pipeline.py).
 
 Stepping is a Python loop over slots: one point-mass step costs microseconds (about 60k steps/s on
 one loaded core), far below a planner call, so threads or batching in C would not change the deploy
@@ -18,7 +22,6 @@ import mujoco
 import numpy as np
 
 from pipeline.envs.disturbance import Pushes, draw_force, push_rng, pushed_step
-from pipeline.envs.maze import PHYSICS_SPEC
 from pipeline.envs.spec import EnvSpec
 
 # MuJoCo warnings after which it has reset the simulation: the slot's state is no longer real.
@@ -93,30 +96,28 @@ class BatchSim:
             self._push_rngs[i] = push_rng(seed)
 
     def set_state(self, physics: np.ndarray, rows: Rows = None) -> None:
-        """Put slots `rows [A]` in exact full-physics states `[A, physics_dim]`
-        (`mjSTATE_FULLPHYSICS`, as recorded with each dataset step).
+        """Put slots `rows [A]` in exact physics states `[A, physics_dim]` (the spec's
+        `state_spec`, as recorded with each dataset step), with `EnvSpec.set_physics_state`.
 
-        The solver's warm start is not part of that state; it is zeroed (as after a reset), so
-        stepping on reproduces the recording exactly away from walls and to round-off at them
-        (`pipeline.envs.maze.set_physics_state`).
+        The mazes' state (`mjSTATE_FULLPHYSICS`) leaves out the solver's warm start; it is zeroed
+        (as after a reset), so stepping on reproduces the recording exactly away from walls and
+        to round-off at them (`pipeline.envs.maze.set_physics_state`). The manipulation envs'
+        state holds everything (`pipeline.envs.manipspace`): stepping on is bit for bit.
         """
         physics = np.asarray(physics, dtype=np.float64)
         ids = self._rows(rows)
         if physics.shape != (len(ids), self.physics_dim):
             raise ValueError(f"physics states {physics.shape} != ({len(ids)}, {self.physics_dim})")
         for i, state in zip(ids, physics, strict=True):
-            model, data = self.models[i], self.datas[i]
-            mujoco.mj_resetData(model, data)
-            mujoco.mj_setState(model, data, state, PHYSICS_SPEC)
-            mujoco.mj_forward(model, data)
-            self._teleport_pending[i] = self._at_teleport(data)  # a state a step led to
+            self.spec.set_physics_state(self.datas[i], state, self.models[i])
+            self._teleport_pending[i] = self._at_teleport(self.datas[i])  # a state a step led to
 
     def get_state(self, rows: Rows = None) -> np.ndarray:
-        """Full-physics states `[A, physics_dim]` of slots `rows` (all if None)."""
+        """Physics states `[A, physics_dim]` of slots `rows` (all if None)."""
         ids = self._rows(rows)
         out = np.empty((len(ids), self.physics_dim))
         for j, i in enumerate(ids):
-            mujoco.mj_getState(self.models[i], self.datas[i], out[j], PHYSICS_SPEC)
+            mujoco.mj_getState(self.models[i], self.datas[i], out[j], self.spec.state_spec)
         return out
 
     def observe(self, rows: Rows = None) -> np.ndarray:

@@ -63,7 +63,7 @@ from __future__ import annotations
 import functools
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 import gymnasium
 import mujoco
@@ -104,6 +104,9 @@ GRIPPER_OPEN_QPOS = 0.8  # driver joint angle of a fully open gripper (opening 1
 GRIPPER_CTRL = 255.0  # actuator command of opening 1
 SUCCESS_TOLERANCE = 0.04  # m (cubes) or joint units (drawer, window)
 BUTTON_PRESSED = -0.02  # a button toggles when its joint crosses this going down
+# The goal cost's scale of a button-state dim (`ManipSpaceSpec.goal_scale`): the states are 0 or 1,
+# so a predicted state half-way between counts as one tolerance off, a wrong one as two.
+BUTTON_GOAL_SCALE = 0.5
 LOCKED_DAMPING = 1e6  # drawer / window joint damping while its button is off (0)
 UNLOCKED_DAMPING = 2.0
 HEALTHY_MARGIN = 0.2  # the scene's instability test: cube beyond workspace bounds +- this
@@ -283,6 +286,7 @@ class ManipSpaceSpec:
     _ids: dict[str, Any]
     _ik: Any
     _pinch_to_flange: Any
+    state_spec: ClassVar[int] = MANIP_STATE_SPEC
 
     @classmethod
     def create(cls, env_id: str) -> ManipSpaceSpec:
@@ -356,16 +360,29 @@ class ManipSpaceSpec:
         mujoco.mj_getState(self.model, data, out, MANIP_STATE_SPEC)
         return out
 
-    def set_physics_state(self, data: mujoco.MjData, state: np.ndarray) -> None:
-        """Put `data` (of `self.model`) exactly in `state [physics_dim]`: reset, restore, and a
+    def set_physics_state(
+        self, data: mujoco.MjData, state: np.ndarray, model: mujoco.MjModel | None = None
+    ) -> None:
+        """Put `data` (of `model`: this spec's model, by default, or a variant of it) exactly in
+        `state [physics_dim]`: reset, restore, the scene's locks written into `model`, and a
         forward pass for the derived quantities nothing here reads (rendering, sites)."""
+        model = self.model if model is None else model
         state = np.asarray(state, dtype=np.float64)
         if state.shape != (self.physics_dim,):
             raise ValueError(f"physics state {state.shape} != ({self.physics_dim},)")
-        mujoco.mj_resetData(self.model, data)
-        mujoco.mj_setState(self.model, data, state, MANIP_STATE_SPEC)
-        self._apply_locks(self.model, data)
-        mujoco.mj_forward(self.model, data)
+        mujoco.mj_resetData(model, data)
+        mujoco.mj_setState(model, data, state, MANIP_STATE_SPEC)
+        self._apply_locks(model, data)
+        mujoco.mj_forward(model, data)
+
+    def cold(self, state: np.ndarray) -> np.ndarray:
+        """`state [physics_dim]` with the solver's warm start zeroed, as after a reset (the rest
+        exactly as it was): what an evaluation start keeps of OGBench's reset, whose warm start
+        comes from two actions drawn from an unseeded action space (`TaskStart`)."""
+        data = mujoco.MjData(self.model)
+        self.set_physics_state(data, state)
+        data.qacc_warmstart[:] = 0.0
+        return self.physics_state(data)
 
     def state_of_env(self, env: gymnasium.Env) -> np.ndarray:
         """The exact state `[physics_dim]` an OGBench env of this id is in (its own `MjData`
@@ -406,6 +423,13 @@ class ManipSpaceSpec:
         return physics[..., cols].reshape(*physics.shape[:-1], self.n_cubes, 3)
 
     # Observation ------------------------------------------------------------------------------
+
+    def observed_cubes(self, observations: np.ndarray) -> np.ndarray:
+        """`[..., n_cubes, 3]` cube positions (m) read from observations `[..., state_dim]` (or
+        predicted ones): the inverse of the observation's `(p - [0.425, 0, 0]) * 10`."""
+        cols = [PROPRIO_DIM + CUBE_DIM * i + k for i in range(self.n_cubes) for k in range(3)]
+        cubes = np.asarray(observations, dtype=np.float64)[..., cols]
+        return XYZ_CENTER + cubes.reshape(*cubes.shape[:-1], self.n_cubes, 3) / XYZ_SCALE
 
     def observe(self, data: mujoco.MjData) -> np.ndarray:
         """OGBench's observation `[state_dim]` (float64) of `data` (of `self.model`), bit for bit
@@ -583,6 +607,17 @@ class ManipSpaceSpec:
             parts.append(np.asarray(goal.button_states, dtype=np.float64))
             parts.append(np.array([goal.drawer_pos * DRAWER_SCALE, goal.window_pos * WINDOW_SCALE]))
         return np.concatenate(parts)
+
+    @property
+    def goal_scale(self) -> tuple[float, ...]:
+        """Per goal dim, its success tolerance in observation units, what planners divide the
+        distance to a goal by (`GoalCost`): cube positions 0.04 m x 10 = 0.4; the scene's button
+        states 0.5 (`BUTTON_GOAL_SCALE`), drawer 0.04 x 18 = 0.72, window 0.04 x 15 = 0.6."""
+        scale = [SUCCESS_TOLERANCE * XYZ_SCALE] * (3 * self.n_cubes)
+        if self.scene:
+            scale += [BUTTON_GOAL_SCALE] * BUTTONS
+            scale += [SUCCESS_TOLERANCE * DRAWER_SCALE, SUCCESS_TOLERANCE * WINDOW_SCALE]
+        return tuple(scale)
 
     def goal_reached(self, observations: np.ndarray, goals: np.ndarray) -> np.ndarray:
         """`[...]` bool: `success` judged from observations `[..., state_dim]` and goal vectors

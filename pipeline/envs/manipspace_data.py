@@ -45,6 +45,7 @@ through `control_step` reproduces the episode exactly).
 from __future__ import annotations
 
 import functools
+from collections.abc import Iterator
 from typing import Any
 
 import gymnasium
@@ -92,10 +93,12 @@ def collection_env(env_id: str) -> gymnasium.Env:
     )
 
 
+@functools.cache
 def _oracles(
     env: gymnasium.Env, scene: bool, recipe: str, noise: float, smoothing: float, min_norm: float
 ) -> dict[str, Any]:
-    """The script's oracles: one per subtask kind the env draws."""
+    """The script's oracles: one per subtask kind the env draws (one set per process and
+    settings: each episode resets the ones it uses)."""
     kinds = SUBTASKS if scene else ("cube",)
     if recipe == "play":
         from ogbench.manipspace.oracles.plan.button_plan import ButtonPlanOracle
@@ -151,19 +154,69 @@ def generate(
     Raises:
         UserError: an unknown env id or recipe, or a size below 1.
     """
+    return list(
+        iter_generate(
+            env_id, recipe, episodes, episode_steps, seed, noise, noise_smoothing, min_norm,
+            p_random_action,
+        )
+    )  # fmt: skip
+
+
+def iter_generate(
+    env_id: str,
+    recipe: str,
+    episodes: int = 2,
+    episode_steps: int = 200,
+    seed: int = 0,
+    noise: float = NOISE,
+    noise_smoothing: float = NOISE_SMOOTHING,
+    min_norm: float = MIN_NORM,
+    p_random_action: float | None = None,
+) -> Iterator[dict[str, Any]]:
+    """`generate`'s episodes one at a time, as they are made (the same episodes). The arguments
+    are checked when the first episode is asked for."""
+    check_sizes(env_id, recipe, episodes, episode_steps)
+    for episode_seed in episode_seeds(seed, episodes):
+        yield generate_episode(
+            env_id, recipe, episode_steps, episode_seed, noise, noise_smoothing, min_norm,
+            p_random_action,
+        )  # fmt: skip
+
+
+def check_sizes(env_id: str, recipe: str, episodes: int, episode_steps: int) -> None:
+    """A one-line `UserError` for an unknown env id or recipe, or a size below 1."""
     check_manipspace_id(env_id)
     if recipe not in RECIPES:
         raise UserError(f"unknown manipulation recipe {recipe!r}; use one of: {', '.join(RECIPES)}")
     if episodes < 1 or episode_steps < 1:
         raise UserError(f"episodes ({episodes}) and episode_steps ({episode_steps}) must be >= 1")
+
+
+def episode_seeds(seed: int, episodes: int) -> list[np.random.SeedSequence]:
+    """The seeds of a dataset's episodes: episode k is a function of `seed` and k alone."""
+    return np.random.SeedSequence(seed).spawn(episodes)
+
+
+def generate_episode(
+    env_id: str,
+    recipe: str,
+    episode_steps: int,
+    episode_seed: np.random.SeedSequence,
+    noise: float = NOISE,
+    noise_smoothing: float = NOISE_SMOOTHING,
+    min_norm: float = MIN_NORM,
+    p_random_action: float | None = None,
+) -> dict[str, Any]:
+    """One episode of `generate` (its `episode_seeds` entry), in this process's collection env.
+
+    An episode does not depend on the ones generated before it in the same env (each starts
+    with a seeded reset and fresh oracle resets; tests/test_manip_pipeline.py), so a dataset can
+    be generated in several processes."""
     spec = manipspace_spec(env_id)
     env = collection_env(env_id)
     p_random = P_RANDOM_ACTION[recipe] if p_random_action is None else float(p_random_action)
     agents = _oracles(env, spec.scene, recipe, noise, noise_smoothing, min_norm)
-    return [
-        _healthy_episode(env, spec, agents, recipe, episode_steps, episode_seed, noise, p_random)
-        for episode_seed in np.random.SeedSequence(seed).spawn(episodes)
-    ]
+    return _healthy_episode(env, spec, agents, recipe, episode_steps, episode_seed, noise, p_random)
 
 
 def _healthy_episode(
@@ -182,7 +235,7 @@ def _healthy_episode(
         numpy_seed, reset_seed = (int(s) for s in attempt_seed.generate_state(2))
         with global_seed(numpy_seed):
             ep = _episode(env, spec, agents, recipe, steps, reset_seed, noise, p_random)
-        if not spec.scene or not _leaves_table(spec.cube_positions(ep["physics"][:-1])):
+        if not spec.scene or not leaves_table(spec.cube_positions(ep["physics"][:-1])):
             ep["attempts"] = attempt
             return ep
     raise RuntimeError(f"{spec.env_id}: {MAX_ATTEMPTS} episodes in a row left the table")
@@ -257,8 +310,9 @@ def _episode(
     }
 
 
-def _leaves_table(cubes: np.ndarray) -> bool:
-    """OGBench's scene health rule on cube positions `[T, n, 3]` (module docstring)."""
+def leaves_table(cubes: np.ndarray) -> bool:
+    """OGBench's scene health rule on cube positions `[T, n, 3]` (module docstring): some cube
+    off the visible table."""
     y, z = cubes[..., 1], cubes[..., 2]
     far_left = (y <= SCENE_FAR_LEFT_Y) & ((z < DRAWER_Z[0]) | (z > DRAWER_Z[1]))
     return bool((y >= SCENE_FAR_RIGHT_Y).any() or far_left.any())
@@ -318,7 +372,7 @@ def check(episodes: list[dict[str, Any]], spec: ManipSpaceSpec) -> dict[str, Any
         if not np.array_equal(obs[:, cube_cols], ((cubes - XYZ_CENTER) * XYZ_SCALE).reshape(
                 steps + 1, -1)):  # fmt: skip
             problems.append(f"episode {e}: observed cube positions differ from the states'")
-        if spec.scene and _leaves_table(cubes):
+        if spec.scene and leaves_table(cubes):
             problems.append(f"episode {e}: the cube leaves the table (OGBench's health rule)")
         if np.abs(actions).max(initial=0.0) > 1.0:
             problems.append(f"episode {e}: actions outside [-1, 1]")

@@ -168,6 +168,17 @@ def set_physics_state(env: gym.Env, state: np.ndarray) -> None:
     mujoco.mj_forward(pe.model, pe.data)
 
 
+def restore_physics(
+    model: mujoco.MjModel, data: mujoco.MjData, state: np.ndarray, mask: int = PHYSICS_SPEC
+) -> None:
+    """Put `data` in `state` (the `mask` components, `mjSTATE_FULLPHYSICS` by default) from a
+    fresh reset: everything the state leaves out (the solver's warm start, for the mazes) is as
+    after `mj_resetData`; then a forward pass for the derived quantities."""
+    mujoco.mj_resetData(model, data)
+    mujoco.mj_setState(model, data, state, mask)
+    mujoco.mj_forward(model, data)
+
+
 def step_point_mass(
     model: mujoco.MjModel, data: mujoco.MjData, action: tuple[float, float] | np.ndarray
 ) -> None:

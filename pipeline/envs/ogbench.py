@@ -39,13 +39,13 @@ import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import gymnasium
 import mujoco
 import numpy as np
 
-from pipeline.envs.maze import PHYSICS_SPEC
+from pipeline.envs.maze import PHYSICS_SPEC, restore_physics
 from pipeline.errors import UserError
 
 # Supported OGBench env ids -> (locomotion type, maze type).
@@ -239,6 +239,7 @@ class OGBenchMazeSpec(ABC):
     max_episode_steps: int = EPISODE_STEPS
     goal_dims: tuple[int, ...] = (0, 1)
     teleports: Teleports | None = None
+    state_spec: ClassVar[int] = PHYSICS_SPEC
 
     @classmethod
     def create(cls, env_id: str) -> OGBenchMazeSpec:
@@ -263,6 +264,12 @@ class OGBenchMazeSpec(ABC):
     def physics_dim(self) -> int:
         """`[time, qpos, qvel]` (`mjSTATE_FULLPHYSICS`): 5 for the point, 30 for the ant."""
         return int(mujoco.mj_stateSize(self.model, PHYSICS_SPEC))
+
+    def set_physics_state(
+        self, data: mujoco.MjData, state: np.ndarray, model: mujoco.MjModel | None = None
+    ) -> None:
+        """`[time, qpos, qvel]`; the solver's warm start zeroed, as after a reset."""
+        restore_physics(model or self.model, data, state, PHYSICS_SPEC)
 
     @abstractmethod
     def start_observation(self, xy: np.ndarray) -> np.ndarray:

@@ -4,11 +4,14 @@ An `EnvSpec` is built once from a dataset's `(env_id, env_kwargs)` (or the recor
 checkpoint) by `make_env_spec`. It owns the nominal MuJoCo model and the per-environment parts of
 stepping: how an observation is read from and written into `MjData`, and one control step. The
 batched simulator (`pipeline.envs.batch.BatchSim`) runs any spec; a new environment family (e.g.
-OGBench point / ant mazes, `pipeline.envs.ogbench`) is a new spec class, nothing else.
+OGBench point / ant mazes, `pipeline.envs.ogbench`; OGBench's manipulation,
+`pipeline.envs.manipspace`) is a new spec class, nothing else.
 
 It also carries the facts that other modules would otherwise hard-code: the sizes of states,
 actions and recorded physics states, which state dimensions a goal refers to (`goal_dims`: x, y
-of the agent in the maze plane), the control period and the maze layout. `check_physics_dim`
+of the agent in the maze plane), the control period and the maze layout, and what a recorded
+physics state is (`state_spec`, `set_physics_state`: `mjSTATE_FULLPHYSICS` for the mazes, more for
+the manipulation envs, whose exact state also holds the solver's warm start). `check_physics_dim`
 holds a dataset's physics states against it from the metadata alone, so ingest and segment refuse
 a dataset recorded in another model before validate would.
 """
@@ -16,12 +19,13 @@ a dataset recorded in another model before validate would.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, ClassVar, Protocol
 
 import mujoco
 import numpy as np
 
 from pipeline.dataset import DatasetInfo
+from pipeline.envs.manipspace import MANIPSPACE_ENVS, is_manipspace, manipspace_spec
 from pipeline.envs.maze import (
     PHYSICS_SPEC,
     SUPPORTED_ENVS,
@@ -29,13 +33,14 @@ from pipeline.envs.maze import (
     max_episode_steps,
     maze_layout,
     point_env,
+    restore_physics,
     step_point_mass,
 )
 from pipeline.envs.ogbench import OGBENCH_MAZES, OGBenchMazeSpec, is_ogbench_maze
 from pipeline.errors import UserError
 
 # Every env id `make_env_spec` builds a simulator for.
-SIMULATED_ENVS: tuple[str, ...] = (*SUPPORTED_ENVS, *OGBENCH_MAZES)
+SIMULATED_ENVS: tuple[str, ...] = (*SUPPORTED_ENVS, *OGBENCH_MAZES, *MANIPSPACE_ENVS)
 
 
 class EnvSpec(Protocol):
@@ -45,9 +50,12 @@ class EnvSpec(Protocol):
         env_id: The gymnasium id.
         state_dim: Size of an observation (the state the models see).
         action_dim: Size of an action.
-        physics_dim: Size of a full MuJoCo physics state (`mjSTATE_FULLPHYSICS`), what datasets
-            record per step so that validate can restore the simulator.
-        goal_dims: State dimensions a goal `[G]` refers to (and the agent's position in the plane).
+        physics_dim: Size of a recorded physics state (`mj_stateSize` of `state_spec`), what
+            datasets record per step so that validate and deploy can restore the simulator.
+        state_spec: The `mjtState` components a physics state holds (`mjSTATE_FULLPHYSICS` for
+            the mazes).
+        goal_dims: State dimensions a goal `[G]` refers to (the mazes: the agent's position in
+            the plane; manipulation: the objects' positions and states).
         dt: Seconds per control step.
         max_episode_steps: Step limit of one evaluation episode.
         layout: The maze (`pipeline.envs.maze.maze_layout`): walls, free cells, bounds.
@@ -58,6 +66,7 @@ class EnvSpec(Protocol):
     state_dim: int
     action_dim: int
     physics_dim: int
+    state_spec: int
     goal_dims: tuple[int, ...]
     dt: float
     max_episode_steps: int
@@ -74,6 +83,13 @@ class EnvSpec(Protocol):
 
     def set_observation(self, data: mujoco.MjData, observation: np.ndarray) -> None:
         """Write the state an observation `[state_dim]` describes into freshly reset `data`."""
+        ...
+
+    def set_physics_state(
+        self, data: mujoco.MjData, state: np.ndarray, model: mujoco.MjModel | None = None
+    ) -> None:
+        """Put `data` (of `model`: the nominal one or a variant) in a recorded physics state
+        `[physics_dim]`, as exactly as the state allows (module docstring)."""
         ...
 
     def control_step(self, model: mujoco.MjModel, data: mujoco.MjData, action: np.ndarray) -> None:
@@ -96,6 +112,7 @@ class PointMazeSpec:
     state_dim: int = 4
     action_dim: int = 2
     goal_dims: tuple[int, ...] = (0, 1)
+    state_spec: ClassVar[int] = PHYSICS_SPEC
 
     @classmethod
     def create(cls, env_id: str, **env_kwargs: Any) -> PointMazeSpec:
@@ -125,6 +142,13 @@ class PointMazeSpec:
         data.qpos[:] = observation[:2]
         data.qvel[:] = observation[2:4]
 
+    def set_physics_state(
+        self, data: mujoco.MjData, state: np.ndarray, model: mujoco.MjModel | None = None
+    ) -> None:
+        """`[time, x, y, vx, vy]`; the solver's warm start zeroed, as after a reset
+        (`pipeline.envs.maze.set_physics_state`)."""
+        restore_physics(model or self.model, data, state, PHYSICS_SPEC)
+
     def control_step(self, model: mujoco.MjModel, data: mujoco.MjData, action: np.ndarray) -> None:
         """`step_point_mass`: bit for bit gymnasium's `PointEnv.step`."""
         step_point_mass(model, data, action)
@@ -133,12 +157,15 @@ class PointMazeSpec:
 def make_env_spec(env_id: str, env_kwargs: dict[str, Any] | None = None) -> EnvSpec:
     """The spec of a dataset's environment (`DatasetInfo.env_id`, `.env_kwargs`).
 
-    gymnasium-robotics PointMazes (`PointMazeSpec`, `env_kwargs` may hold a custom `maze_map`)
-    and OGBench's point and ant mazes (`pipeline.envs.ogbench`, no kwargs: their mazes are fixed).
+    gymnasium-robotics PointMazes (`PointMazeSpec`, `env_kwargs` may hold a custom `maze_map`),
+    OGBench's point and ant mazes (`pipeline.envs.ogbench`, no kwargs: their mazes are fixed) and
+    OGBench's manipulation envs (`pipeline.envs.manipspace`: cube-single, cube-double, scene).
 
     Raises:
         UserError: no simulator for `env_id` (e.g. data imported from a real robot).
     """
+    if is_manipspace(env_id):
+        return manipspace_spec(env_id)
     if is_ogbench_maze(env_id) or env_id.endswith("maze-teleport-v0"):
         return OGBenchMazeSpec.create(env_id)  # teleport: the error says why not
     if env_id not in SUPPORTED_ENVS:

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from pipeline.envs.batch import BatchSim
+from pipeline.evaluation.goals import GoalRule
 from pipeline.evaluation.tasks import EpisodeSpec
 from pipeline.planning.agents import Agent
 
@@ -74,9 +75,12 @@ class EpisodeResult:
     Attributes:
         spec: The episode's task, start, goal and seed.
         steps: Steps executed.
-        steps_to_goal: First step (1-based) within `success_radius`, or None.
-        steps_to_goal_gym: First step within `gym_radius`, or None.
-        min_distance: Closest distance to the goal.
+        steps_to_goal: First step (1-based) within `success_radius` (or meeting the
+            environment's own success rule: `GoalRule`), or None.
+        steps_to_goal_gym: First step within `gym_radius` (the environment's own rule where it
+            has one), or None.
+        min_distance: Closest distance to the goal (`GoalRule.distance`: m in a maze, success
+            tolerances in OGBench's manipulation envs).
         final_distance: Distance at the end.
         fell_at: First step (1-based) at which the agent had fallen (environments whose spec
             has `fallen`, the ant), or None.
@@ -147,8 +151,12 @@ class _Wave:
         self.envs = envs
         self.results = [EpisodeResult(spec) for spec in specs]
         self.goals = np.stack([s.goal for s in specs])
+        self.rule = GoalRule.of_spec(envs.spec)
         rows = np.arange(len(specs))
-        envs.reset(np.stack([s.start for s in specs]), rows)
+        if any(s.physics is not None for s in specs):  # exact start states (manipulation)
+            envs.set_state(np.stack([s.physics for s in specs]), rows)
+        else:
+            envs.reset(np.stack([s.start for s in specs]), rows)
         envs.seed_slots([s.seed for s in specs], rows)  # used when the env has pushes
         self.states = envs.observe(rows)
         self.alive = np.ones(len(specs), dtype=bool)
@@ -196,7 +204,7 @@ def _step(wave: _Wave, rows: np.ndarray, actions: np.ndarray, t: int, cfg: RunCo
         wave.fail(np.array([i]), message)
     stepped = np.array([i not in failed for i in rows], dtype=bool)
     wave.states[rows[stepped]] = wave.envs.observe(rows[stepped])
-    goal_dims = list(wave.envs.spec.goal_dims)
+    rule = wave.rule
     fallen_of = getattr(wave.envs.spec, "fallen", None)  # the ant: torso down or upside down
     fallen = np.zeros(len(rows), dtype=bool) if fallen_of is None else fallen_of(wave.states[rows])
     for j, i in enumerate(rows):
@@ -208,12 +216,13 @@ def _step(wave: _Wave, rows: np.ndarray, actions: np.ndarray, t: int, cfg: RunCo
             result.fell_at = t + 1
         result.trace.actions.append(actions[j].copy())
         result.trace.states.append(wave.states[i].copy())
-        d = float(np.linalg.norm(wave.states[i, goal_dims] - wave.goals[i]))
+        state, goal = wave.states[i], wave.goals[i]
+        d = rule.distance(state, goal)
         result.final_distance = d
         result.min_distance = min(result.min_distance, d)
-        if result.steps_to_goal is None and d <= cfg.success_radius:
+        if result.steps_to_goal is None and rule.success(state, goal, d, cfg.success_radius):
             result.steps_to_goal = t + 1
-        if result.steps_to_goal_gym is None and d <= cfg.gym_radius:
+        if result.steps_to_goal_gym is None and rule.success(state, goal, d, cfg.gym_radius):
             result.steps_to_goal_gym = t + 1
         if result.steps_to_goal is not None and result.steps_to_goal_gym is not None:
             wave.alive[i] = False

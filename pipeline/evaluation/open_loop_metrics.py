@@ -118,10 +118,11 @@ def horizon_metrics(
     pos: list[int],
     state_names: list[str],
     norm: tuple[np.ndarray, np.ndarray],
-    crossing: np.ndarray,
+    crossing: np.ndarray | None,
     layout: dict[str, Any],
 ) -> dict[str, Any]:
-    """Metrics after k skills (t = k H steps) of one mode; see `open_loop_report`."""
+    """Metrics after k skills (t = k H steps) of one mode; see `open_loop_report` (`crossing`
+    None: no walls, no wall metrics)."""
     t = k * horizon
     real = result.real[:, t]
     mean, std = result.pred_mean[:, k - 1], result.pred_std[:, k - 1]
@@ -155,9 +156,16 @@ def horizon_metrics(
         out[f"tawm_within_{n_sigma}sigma_per_dim"] = dict(
             zip(state_names, frac.round(4).tolist(), strict=True)
         )
-    out["single_step_wall_crossing"] = float((crossing <= t).mean())
-    out["tawm_end_in_wall"] = float(points_in_walls(result.tawm_mean[:, k - 1, pos], layout).mean())
+    if crossing is not None:
+        out["single_step_wall_crossing"] = float((crossing <= t).mean())
+        end = result.tawm_mean[:, k - 1, pos]
+        out["tawm_end_in_wall"] = float(points_in_walls(end, layout).mean())
     return out
+
+
+def has_walls(layout: dict[str, Any]) -> bool:
+    """Whether a spec's layout is a maze with wall cells (not a manipulation workspace)."""
+    return "wall_cells" in layout
 
 
 def open_loop_report(
@@ -179,7 +187,9 @@ def open_loop_report(
       cell within these k H steps; `tawm_end_in_wall`: TAWM chained means inside a wall.
 
     Plus `real_wall_crossing` (a check of the wall test: real paths never enter walls).
-    Positions are the state dims `spec.goal_dims`; walls come from `spec.layout`.
+    Positions are the state dims `spec.goal_dims` (OGBench's manipulation: the objects' goal
+    dims, in observation units); walls come from `spec.layout`, and a layout without walls (the
+    manipulation workspace) has no wall metrics.
     """
     pos, layout = list(spec.goal_dims), spec.layout
     report: dict[str, Any] = {
@@ -189,18 +199,24 @@ def open_loop_report(
         "expected_within": {f"{k}sigma": round(p, 4) for k, p in EXPECTED_WITHIN.items()},
     }
     real_crossing = []
+    walls = has_walls(layout)
     for mode, result in v.modes.items():
-        crossing = first_wall_crossing(result.single_step[..., pos], layout)
-        real_crossing.append(
-            first_wall_crossing(result.real[..., pos], layout) < result.real.shape[1]
-        )
+        crossing = None
+        if walls:
+            crossing = first_wall_crossing(result.single_step[..., pos], layout)
+            real_crossing.append(
+                first_wall_crossing(result.real[..., pos], layout) < result.real.shape[1]
+            )
         report[mode] = {
             f"skills_{k}": horizon_metrics(
                 result, k, v.horizon, pos, state_names, norm, crossing, layout
             )
             for k in range(1, result.tawm_mean.shape[1] + 1)
         }
-    report["real_wall_crossing"] = float(np.concatenate(real_crossing).mean())
+    if walls:
+        report["real_wall_crossing"] = float(np.concatenate(real_crossing).mean())
+    else:  # a manipulation env: positions are its goal dims in observation units
+        report["position_unit"] = "observation units"
     report["timing"] = {
         "sim_steps": v.sim_steps,
         "sim_steps_per_s": v.sim_steps / max(v.sim_s, 1e-9),

@@ -86,7 +86,11 @@ def latency_summary(calls: list[PlanCall]) -> dict:
 
 
 def optimism_gap(
-    results: list[EpisodeResult], state_steps: int, every: int, goal_dims: Sequence[int]
+    results: list[EpisodeResult],
+    state_steps: int,
+    every: int,
+    goal_dims: Sequence[int],
+    scale: Sequence[float] | None = None,
 ) -> dict:
     """How much closer to the goal each plan said its executed part would get than it did.
 
@@ -102,9 +106,12 @@ def optimism_gap(
         state_steps: Environment steps per predicted plan state (the skill length T, or 1).
         every: Steps between replans.
         goal_dims: The state dims a goal refers to.
+        scale: Per goal dim, what distances are divided by (the spec's `goal_scale`: success
+            tolerances in OGBench's manipulation envs); None: raw units (m in the mazes).
     """
     k = max(1, every // state_steps)
     dims = list(goal_dims)
+    divide = 1.0 if scale is None else np.asarray(scale, dtype=np.float64)
     gaps, errors, count = [], [], 0
     for r in results:
         states, goal = r.trace.states, r.spec.goal
@@ -114,6 +121,8 @@ def optimism_gap(
             if end >= len(states) or k >= len(plan):
                 continue
             real, predicted = states[end][dims], plan[k][dims]
+            if scale is not None:
+                real, predicted, goal = real / divide, predicted / divide, r.spec.goal / divide
             ep_gaps.append(np.linalg.norm(real - goal) - np.linalg.norm(predicted - goal))
             ep_errors.append(np.linalg.norm(real - predicted))
         if ep_gaps:

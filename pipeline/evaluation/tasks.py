@@ -11,7 +11,11 @@
 - `ogbench`: an OGBench maze's five evaluation tasks exactly as OGBench defines them (its
   `task_infos`: start and goal cells; both get uniform noise of +- 1 per axis, OGBench's
   `add_noise`); they are reported as five tasks, `ogbench-task1` .. `ogbench-task5`
-  (`MazeTasks.expand`). Only in OGBench mazes (`pipeline.envs.ogbench`).
+  (`MazeTasks.expand`). In OGBench mazes (`pipeline.envs.ogbench`), and in OGBench's
+  manipulation envs (`manipulation_episodes`): each episode starts in the exact physics state
+  OGBench's evaluation reset leaves (`ManipSpaceSpec.task_start`, seeded per episode), its goal
+  is the task's object configuration at the spec's `goal_dims` (`goal_vector`). The maze tasks
+  (corners, random_goal, goal) are refused there.
 
 Other starts are cell centres plus uniform noise of +- `start_noise` per axis (D4RL's reset
 noise: 0.1). Every start is at rest (`EnvSpec.start_observation`). Every episode has its own
@@ -26,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.envs.manipspace import ManipSpaceSpec
 from pipeline.envs.maze import layout_cell
 from pipeline.envs.ogbench import TASK_NOISE, is_ogbench_maze, ogbench_tasks
 from pipeline.errors import UserError
@@ -44,8 +49,10 @@ class EpisodeSpec:
         index: Episode number within the task.
         start: `[state_dim]` initial state (`[x, y, vx, vy]` in a PointMaze, `[x, y]` for
             OGBench's point).
-        goal: `[2]` goal position `[x, y]`.
+        goal: `[G]` the goal at the spec's `goal_dims` (`[x, y]` in a maze).
         seed: Seed of the episode's planner and action noise.
+        physics: `[physics_dim]` the exact start state to restore (OGBench's manipulation
+            tasks), or None: start at rest in `start` (`EnvSpec.set_observation`).
     """
 
     task: str
@@ -53,6 +60,7 @@ class EpisodeSpec:
     start: np.ndarray
     goal: np.ndarray
     seed: int
+    physics: np.ndarray | None = None
 
 
 def check_task(name: str) -> None:
@@ -216,3 +224,54 @@ class MazeTasks:
             goal=np.asarray(goal, dtype=np.float64).copy(),
             seed=int(seq.generate_state(1)[0]),
         )
+
+
+MAZE_TASKS = ("corners", "random_goal", "goal")
+
+
+def check_manipulation_tasks(env_id: str, tasks: list[str]) -> None:
+    """A one-line `UserError` for a maze task (corners, random_goal, goal) in a manipulation env."""
+    maze_only = [t for t in tasks if t != "ogbench"]
+    if maze_only:
+        raise UserError(
+            f"deploy.tasks {maze_only}: maze tasks (start cells, goal positions in a plane); "
+            f"{env_id} has OGBench's five object-goal tasks: set deploy.tasks=[ogbench]"
+        )
+
+
+def manipulation_episodes(
+    spec: ManipSpaceSpec, tasks: list[str], n: int, seed: int
+) -> dict[str, list[EpisodeSpec]]:
+    """`n` episodes of each of OGBench's five evaluation tasks of a manipulation env,
+    `{"ogbench-task1": [...], ...}`: episode k of task K starts from `spec.task_start(K, s)`, its
+    reset seed `s` and the episode's own seed drawn from (seed, "ogbench", K, k).
+
+    The start is OGBench's reset state exactly but for the solver's warm start, which OGBench's
+    reset leaves from two unseeded random actions: it is zeroed (`ManipSpaceSpec.cold`), so an
+    episode is a function of its seed (the first step then differs from OGBench's in the last
+    bits of the solver, nothing a success rate could see).
+
+    Raises:
+        UserError: a task other than `ogbench` (the maze tasks need a maze).
+    """
+    check_manipulation_tasks(spec.env_id, tasks)
+    out: dict[str, list[EpisodeSpec]] = {}
+    for task in spec.tasks():
+        name = f"{OGBENCH_PREFIX}task{task.task_id}"
+        episodes = []
+        for k in range(n):
+            seq = np.random.SeedSequence([seed, TASKS.index("ogbench"), task.task_id, k])
+            episode_seed, reset_seed = (int(v) for v in seq.generate_state(2))
+            start = spec.task_start(task.task_id, reset_seed)
+            episodes.append(
+                EpisodeSpec(
+                    task=name,
+                    index=k,
+                    start=start.observation,
+                    goal=spec.goal_vector(start.goal),
+                    seed=episode_seed,
+                    physics=spec.cold(start.physics),
+                )
+            )
+        out[name] = episodes
+    return out

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import torch
 
@@ -10,6 +10,12 @@ import torch
 class GoalCost:
     """Goal reaching as in the paper's maze2d experiments (§4.2): the cost of a predicted sequence
     is the L2 distance between the goal and the predicted state nearest to it.
+
+    Which state dims the goal gives (`dims`) and a per-dim `scale` make the same cost serve any
+    goal: the distance is over `(state[dims] - goal) / scale`, so with each dim's scale its
+    success tolerance (OGBench's manipulation: a cube's 0.04 m is 0.4 observation units) a cost
+    of 1 is "at the tolerance" whatever the dims measure. No scale (the mazes): raw units, the
+    paper's cost exactly.
 
     Sparse: one value per plan, whichever skill gets closest; no per-step reward. The current state
     s_0 is not a prediction and is left out, so every candidate is scored by where it leads.
@@ -25,6 +31,8 @@ class GoalCost:
     Args:
         goals: `[B, G]` one goal per problem of the planning batch (e.g. `[x, y]`).
         dims: The state dimensions the goal is compared with (default: the first G).
+        scale: G positive divisors, one per goal dim (numbers, not a tensor: they are part of
+            `key`), or None (raw units).
         skill_penalty: Goal units added per skill before the nearest state (0: the paper).
         fall_penalty: Goal units added to a plan predicted to fall (needs `fallen`).
         fallen: `states [..., sd] -> bool [...]`, or None (the agent cannot fall).
@@ -37,11 +45,20 @@ class GoalCost:
         skill_penalty: float = 0.0,
         fall_penalty: float = 0.0,
         fallen: Callable[[torch.Tensor], torch.Tensor] | None = None,
+        scale: Sequence[float] | None = None,
     ):
         self.goals = goals
         self.dims = tuple(dims) if dims is not None else tuple(range(goals.shape[-1]))
         if len(self.dims) != goals.shape[-1]:
             raise ValueError(f"goal has {goals.shape[-1]} dims but dims={self.dims}")
+        self.scale_values = None if scale is None else tuple(float(v) for v in scale)
+        if self.scale_values is not None and (
+            len(self.scale_values) != len(self.dims) or not all(v > 0 for v in self.scale_values)
+        ):
+            raise ValueError(f"scale must be {len(self.dims)} positive numbers, got {scale}")
+        self.scale = None  # [G] on the goals' device
+        if self.scale_values is not None:
+            self.scale = torch.tensor(self.scale_values, dtype=goals.dtype, device=goals.device)
         if skill_penalty < 0:
             raise ValueError(f"skill_penalty must be >= 0, got {skill_penalty}")
         self.skill_penalty = float(skill_penalty)
@@ -54,7 +71,10 @@ class GoalCost:
         """Predicted `states [B, K, L + 1, sd]` (0: s_0) of the B problems -> `[B, K]`."""
         reached = _select(states[:, :, 1:], self.dims)  # [B, K, L, G]
         goal = self.goals[:, None, None, :]  # [B, 1, 1, G]
-        distance = torch.linalg.vector_norm(reached - goal, dim=-1)  # [B, K, L]
+        residual = reached - goal
+        if self.scale is not None:
+            residual = residual / self.scale
+        distance = torch.linalg.vector_norm(residual, dim=-1)  # [B, K, L]
         if self.skill_penalty:
             k = torch.arange(1, distance.shape[-1] + 1, device=distance.device)
             distance = distance + self.skill_penalty * k.to(distance.dtype)
@@ -66,12 +86,16 @@ class GoalCost:
 
     @property
     def key(self) -> tuple:
-        """What a captured plan depends on besides the goals' values (dims and penalties)."""
-        return (self.dims, self.skill_penalty, self.fall_penalty, self.fallen)
+        """What a captured plan depends on besides the goals' values: dims, penalties, fall test
+        and (when there is one) the scale."""
+        key = (self.dims, self.skill_penalty, self.fall_penalty, self.fallen)
+        return key if self.scale_values is None else (*key, self.scale_values)
 
     def with_goals(self, goals: torch.Tensor) -> GoalCost:
         """The same cost with other goals `[B', G]` (e.g. a CUDA graph's static input)."""
-        return GoalCost(goals, self.dims, self.skill_penalty, self.fall_penalty, self.fallen)
+        return GoalCost(
+            goals, self.dims, self.skill_penalty, self.fall_penalty, self.fallen, self.scale_values
+        )
 
 
 def _select(x: torch.Tensor, dims: tuple[int, ...]) -> torch.Tensor:

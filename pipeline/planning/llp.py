@@ -173,13 +173,21 @@ class LowLevelMPC:
     Args:
         planner: The batched low-level planner.
         goal_dims: State dimensions the goal refers to (None: the first G).
+        goal_scale: Per goal dim, what the goal cost divides its distance by (`GoalCost`);
+            None: raw units.
     """
 
     name = "llp"
 
-    def __init__(self, planner: LowLevelPlanner, goal_dims: tuple[int, ...] | None = None):
+    def __init__(
+        self,
+        planner: LowLevelPlanner,
+        goal_dims: tuple[int, ...] | None = None,
+        goal_scale: Sequence[float] | None = None,
+    ):
         self.planner = planner
         self.goal_dims = goal_dims
+        self.goal_scale = goal_scale
         self.device = planner.device
         self._keys = torch.zeros(0, dtype=torch.long)  # [B] random-stream key per slot
         self._replans = torch.zeros(0, dtype=torch.long)  # [B] replans so far per slot
@@ -215,7 +223,7 @@ class LowLevelMPC:
             init = torch.where(self._warm[idx, None, None], shifted, torch.zeros_like(prev))
         plan = self.planner.plan(
             s0,
-            GoalCost(self._goals[idx], self.goal_dims),
+            GoalCost(self._goals[idx], self.goal_dims, scale=self.goal_scale),
             substream(self._keys[idx], self._replans[idx]),
             init,
         )

@@ -35,6 +35,8 @@ class SkillMPC:
             (`deploy.subgoals`); None: always to the goal (the paper).
         fallen: Test of predicted states for a fallen agent (the environment spec's `fallen`,
             the ant), for the planner's `fall_penalty`; None: the agent cannot fall.
+        goal_scale: Per goal dim, what the goal cost divides its distance by (the environment
+            spec's `goal_scale`: OGBench manipulation's success tolerances); None: raw units.
     """
 
     name = "oposm"
@@ -47,8 +49,10 @@ class SkillMPC:
         goal_dims: tuple[int, ...] | None = None,
         subgoals: SubgoalGraph | None = None,
         fallen: Callable[[torch.Tensor], torch.Tensor] | None = None,
+        goal_scale: Sequence[float] | None = None,
     ):
         self.model = model
+        self.goal_scale = goal_scale
         self.fallen = fallen
         self.subgoals = subgoals
         self.targets: torch.Tensor | None = None  # [A, G] the last replan's waypoints, if any
@@ -94,7 +98,14 @@ class SkillMPC:
             self.targets = targets
         plan = self.planner.plan(
             s0,
-            GoalCost(targets, self.goal_dims, cfg.skill_penalty, cfg.fall_penalty, self.fallen),
+            GoalCost(
+                targets,
+                self.goal_dims,
+                cfg.skill_penalty,
+                cfg.fall_penalty,
+                self.fallen,
+                self.goal_scale,
+            ),
             substream(self._plan_keys[idx], self._replans[idx]),
             init,
         )

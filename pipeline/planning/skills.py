@@ -188,7 +188,7 @@ class SkillPlanner:
         """Whether the Triton kernel computes this plan's rollout and cost (`config.kernel`)."""
         if self.config.kernel != "triton":
             return False
-        return isinstance(cost, GoalCost) and not cost.fall_penalty
+        return isinstance(cost, GoalCost) and not cost.fall_penalty and cost.scale is None
 
     def _step(
         self,

@@ -3,7 +3,8 @@
 - `read_lerobot`: a LeRobot v3.0 dataset, through `lerobot`.
 - `read_d4rl`: a D4RL hdf5 file, through h5py (maze2d coordinates converted for PointMaze).
 - `read_minari`: a local Minari dataset, through `minari`.
-- `read_ogbench` / `generate_ogbench`: OGBench maze data, from its `.npz` files or its recipe.
+- `read_ogbench` / `generate_ogbench`: OGBench maze data, from its `.npz` files or its recipe;
+  `open_manipulation`: OGBench's manipulation data (cube, scene), from its recipe.
 - `export_lerobot`: one of our MCAP datasets as a LeRobot v3.0 dataset.
 
 `open_source(params.ingest)` picks the importer named by `ingest.source`. `lerobot` and `minari`
@@ -15,6 +16,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from pipeline.envs.manipspace import is_manipspace
 from pipeline.errors import UserError
 from pipeline.sources.common import ImportedDataset, is_simulated_maze
 from pipeline.sources.d4rl import read_d4rl, write_d4rl
@@ -85,6 +87,18 @@ def open_ogbench(cfg: IngestParams, progress: bool = False) -> ImportedDataset:
     from pipeline.sources.ogbench import generate_ogbench, make_recipe, read_ogbench
 
     og = cfg.ogbench
+    if is_manipspace(og.env_id):
+        from pipeline.sources.ogbench.manipulation import open_manipulation
+
+        if og.expert:
+            raise UserError(
+                f"ingest.ogbench.expert is for ant mazes; {og.env_id}'s data come from OGBench's "
+                "scripted oracles: set ingest.ogbench.expert to null"
+            )
+        return open_manipulation(
+            og.env_id, og.dataset_type, cfg.episodes, cfg.episode_steps, cfg.seed, cfg.name,
+            og.noise, og.path, progress, og.workers,
+        )  # fmt: skip
     if og.path:
         if og.expert:
             raise UserError(

@@ -1,1 +1,2 @@
-"""Rerun logging of mazes, episodes, plans and model predictions (imported lazily: rerun is big)."""
+"""Rerun logging of mazes, episodes, plans and model predictions (imported lazily: rerun is big);
+OGBench's manipulation envs in 3-D (`manip`, `manip_validate`)."""

@@ -122,7 +122,7 @@ def _rate(results: list[EpisodeResult]) -> tuple[int, int, float, float]:
     return wins, n, *wilson_interval(wins, n)
 
 
-def _table(grouped: dict[str, dict[str, list[EpisodeResult]]]) -> str:
+def success_table(grouped: dict[str, dict[str, list[EpisodeResult]]]) -> str:
     """Markdown: success with its 95 % interval, median steps to goal, failed episodes."""
     lines = [
         "| agent | task | success | 95 % interval | median steps | failed episodes |",
@@ -147,7 +147,7 @@ def _summary(grouped: dict[str, dict[str, list[EpisodeResult]]], env: EnvSpec) -
     wins = sum(r.success for by_task in grouped.values() for rs in by_task.values() for r in rs)
     return (
         f"### {env.env_id}: {wins} of {total} episodes reached the goal\n\n"
-        f"{_table(grouped)}\n\n"
+        f"{success_table(grouped)}\n\n"
         "Maps: start (dot) and goal (ring) of every episode, green if it reached the goal, red "
         "if not; a red x where a failure ended (task and episode: open "
         "`<agent>-<task>-<episode>.rrd` when it was recorded)."
@@ -159,7 +159,9 @@ def agent_color(agent: str, index: int) -> tuple[int, ...]:
     return AGENT_COLORS.get(agent, OTHER_COLORS[index % len(OTHER_COLORS)])
 
 
-def _log_bars(rec: rr.RecordingStream, grouped: dict[str, dict[str, list[EpisodeResult]]]) -> None:
+def log_success_bars(
+    rec: rr.RecordingStream, grouped: dict[str, dict[str, list[EpisodeResult]]]
+) -> None:
     """One bar series per agent (its name in the legend), bars at x = the task's number."""
     tasks = _tasks(grouped)
     width = 0.8 / len(grouped)
@@ -244,7 +246,7 @@ def write_overview(
                 rr.TextDocument(_summary(grouped, env), media_type="text/markdown"),
                 static=True,
             )
-            _log_bars(rec, grouped)
+            log_success_bars(rec, grouped)
             rec.flush()
         finally:
             rec.disconnect()
