@@ -42,9 +42,9 @@ def earlier_rows(report: dict | None) -> dict[tuple[str, int], dict]:
         if "val_st_nll_prior" not in row:
             continue
         recipe = RENAMED.get(row["recipe"], row["recipe"])
-        out[recipe, row["seed"]] = {"commit": report.get("commit"), "machine": machine} | row | {
-            "recipe": recipe
-        }
+        out[recipe, row["seed"]] = (
+            {"commit": report.get("commit"), "machine": machine} | row | {"recipe": recipe}
+        )
     return out
 
 
@@ -150,7 +150,8 @@ def main() -> None:
     parser.add_argument("--keep", type=Path, help="an earlier report's JSON (rows not rerun here)")
     args = parser.parse_args()
     stamped = stamp(Path.cwd())
-    rows = collect([_run(text) for text in args.run], stamped, read(args.keep) if args.keep else None)
+    earlier = read(args.keep) if args.keep else None
+    rows = collect([_run(text) for text in args.run], stamped, earlier)
     write_json(args.out.with_suffix(".json"), {"commit": stamped["commit"], "stamp": stamped,
                                                "runs": rows})  # fmt: skip
     with atomic_path(args.out.with_suffix(".md")) as tmp:
