@@ -122,44 +122,9 @@ def _oracles(
     return oracles
 
 
-def generate(
-    env_id: str,
-    recipe: str,
-    episodes: int = 2,
-    episode_steps: int = 200,
-    seed: int = 0,
-    noise: float = NOISE,
-    noise_smoothing: float = NOISE_SMOOTHING,
-    min_norm: float = MIN_NORM,
-    p_random_action: float | None = None,
-) -> list[dict[str, Any]]:
-    """`episodes` episodes of `episode_steps` steps of OGBench's `recipe` data (module docstring).
-
-    Args:
-        env_id: `cube-single-v0`, `cube-double-v0` or `scene-v0`.
-        recipe: "play" (plan oracles, smoothed noise) or "noisy" (Markov oracles, Gaussian noise).
-        episodes, episode_steps: The size (OGBench: 1000 x 1001, plus 100 validation episodes).
-        seed: Everything drawn is a function of it.
-        noise: Play: the plan noise level; noisy: the maximum of the per-episode `xi`.
-        noise_smoothing: Play: the noise's smoothing (Gaussian filter sigma, steps).
-        min_norm: Noisy: the Markov oracles' minimum relative-position norm.
-        p_random_action: Probability of a uniform random action (default play 0, noisy 0.1).
-
-    Returns:
-        One dict per episode: `observations [T+1, S]`, `actions [T, 5]`, `physics [T+1, P]`
-        (float64), `success [T]`, `subtask_done [T]` (bool), `subtask [T]` (int8 index into
-        `SUBTASKS`), and `attempts` (scene episodes redone for leaving the table, plus 1),
-        `p_stack`, `xi` (noisy; else 0).
-
-    Raises:
-        UserError: an unknown env id or recipe, or a size below 1.
-    """
-    return list(
-        iter_generate(
-            env_id, recipe, episodes, episode_steps, seed, noise, noise_smoothing, min_norm,
-            p_random_action,
-        )
-    )  # fmt: skip
+def generate(*args: Any, **kwargs: Any) -> list[dict[str, Any]]:
+    """`iter_generate`'s episodes as a list (the same arguments)."""
+    return list(iter_generate(*args, **kwargs))
 
 
 def iter_generate(
@@ -173,8 +138,28 @@ def iter_generate(
     min_norm: float = MIN_NORM,
     p_random_action: float | None = None,
 ) -> Iterator[dict[str, Any]]:
-    """`generate`'s episodes one at a time, as they are made (the same episodes). The arguments
-    are checked when the first episode is asked for."""
+    """`episodes` episodes of `episode_steps` steps of OGBench's `recipe` data (module docstring),
+    one at a time as they are made; the arguments are checked when the first one is asked for.
+
+    Args:
+        env_id: `cube-single-v0`, `cube-double-v0` or `scene-v0`.
+        recipe: "play" (plan oracles, smoothed noise) or "noisy" (Markov oracles, Gaussian noise).
+        episodes, episode_steps: The size (OGBench: 1000 x 1001, plus 100 validation episodes).
+        seed: Everything drawn is a function of it.
+        noise: Play: the plan noise level; noisy: the maximum of the per-episode `xi`.
+        noise_smoothing: Play: the noise's smoothing (Gaussian filter sigma, steps).
+        min_norm: Noisy: the Markov oracles' minimum relative-position norm.
+        p_random_action: Probability of a uniform random action (default play 0, noisy 0.1).
+
+    Yields:
+        One dict per episode: `observations [T+1, S]`, `actions [T, 5]`, `physics [T+1, P]`
+        (float64), `success [T]`, `subtask_done [T]` (bool), `subtask [T]` (int8 index into
+        `SUBTASKS`), and `attempts` (scene episodes redone for leaving the table, plus 1),
+        `p_stack`, `xi` (noisy; else 0).
+
+    Raises:
+        UserError: an unknown env id or recipe, or a size below 1.
+    """
     check_sizes(env_id, recipe, episodes, episode_steps)
     for episode_seed in episode_seeds(seed, episodes):
         yield generate_episode(
