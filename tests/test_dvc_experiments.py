@@ -266,12 +266,6 @@ def test_two_queued_experiments_run_on_two_workers_and_share_the_run_cache(tmp_p
     ).exists()
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="stale lock: OPOSM's deploy on antmaze-large (deploy@large), maze@large and report have "
-    "not been recorded yet, and the large overlay lost two lines that repeated params.yaml: run "
-    "`uv run dvc repro experiments/antmaze/dvc.yaml` and commit its dvc.lock and results/antmaze*",
-)
 def test_committed_ant_lock_matches_params_code_and_results():
     """The ant mazes' pipeline ran as committed: its lock holds every stage with the params, code
     and command it ran with, and results/antmaze.* as its report stage wrote them."""
