@@ -9,9 +9,11 @@
 # time; 6-11 min of training and 1-2 of deploying per run on an idle 2-core CPU. A run already
 # finished is skipped, and a killed one resumes where it stopped, so the same command continues
 # a sweep.
-# `bash scripts/stability_cpu.sh RECIPE...` runs only those recipes; the report keeps the other
-# recipes' rows from the committed results/stability-cpu.json (with their commit and machine).
-# Needs the main job's segments (`uv run dvc repro`). `--report` only rewrites the report.
+# `bash scripts/stability_cpu.sh RECIPE...` runs only those recipes, `--seeds 0,3` only those
+# seeds of them, `--jobs 1` one run at a time (beside another job on the other core); the report
+# keeps every row not rerun here from the committed results/stability-cpu.json (with its commit
+# and machine). Needs the main job's segments (`uv run dvc repro segment`). `--report` only
+# rewrites the report.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 runs=data/runs
@@ -23,12 +25,25 @@ declare -A RECIPES=(
   [layernorm]="-S train.e_prior=current -S train.policy_trunk=layernorm_silu"
 )
 report_only=false
-if [[ "${1:-}" == "--report" ]]; then report_only=true; shift; fi
+seeds=""
+parallel=2
+while [[ $# -gt 0 ]]; do
+  case "$1" in
+    --report) report_only=true; shift ;;
+    --seeds) seeds="${2:?--seeds needs a list such as 0,3,4}"; shift 2 ;;
+    --jobs) parallel="${2:?--jobs needs 1 or 2}"; shift 2 ;;
+    *) break ;;
+  esac
+done
+[[ "$parallel" == 1 || "$parallel" == 2 ]] || { echo "--jobs is 1 or 2, not $parallel" >&2; exit 2; }
 selected=("$@")
 for recipe in "${selected[@]}"; do
   [[ -v "RECIPES[$recipe]" ]] || { echo "unknown recipe $recipe; use: ${!RECIPES[*]}" >&2; exit 2; }
 done
-wanted() { [[ ${#selected[@]} -eq 0 ]] || [[ " ${selected[*]} " == *" $1 "* ]]; }
+wanted() {  # recipe seed
+  { [[ ${#selected[@]} -eq 0 ]] || [[ " ${selected[*]} " == *" $1 "* ]]; } &&
+    { [[ -z "$seeds" ]] || [[ ",$seeds," == *",$2,"* ]]; }
+}
 jobs=()
 for recipe in default bfloat16; do
   for seed in 0 1 2 3 4 5 6 7 8 9; do jobs+=("$recipe $seed"); done
@@ -53,12 +68,12 @@ if ! $report_only; then
   mkdir -p "$runs"
   todo=()
   for job in "${jobs[@]}"; do
-    read -r recipe _ <<< "$job"
-    if wanted "$recipe"; then todo+=("$job"); fi
+    read -r recipe seed <<< "$job"
+    if wanted "$recipe" "$seed"; then todo+=("$job"); fi
   done
-  for ((i = 0; i < ${#todo[@]}; i += 2)); do
+  for ((i = 0; i < ${#todo[@]}; i += parallel)); do
     run_one ${todo[i]} &
-    if ((i + 1 < ${#todo[@]})); then run_one ${todo[i + 1]} & fi
+    if ((parallel == 2 && i + 1 < ${#todo[@]})); then run_one ${todo[i + 1]} & fi
     wait
   done
 fi

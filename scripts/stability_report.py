@@ -103,9 +103,10 @@ def markdown(rows: list[dict], stamped: dict) -> str:
         "",
         "Command: `bash scripts/stability_cpu.sh` (two runs at a time, one torch thread each; "
         "the main job's params, 5000 steps; deploy: the main job's 100 random goals "
-        "and 100 corner-to-corner episodes); `bash scripts/stability_cpu.sh RECIPE...` reruns "
-        "some recipes, the others keep their rows (and their commit and machine, in the last "
-        "table) from the committed report. A run is stable when its validation s_T NLL with "
+        "and 100 corner-to-corner episodes); `bash scripts/stability_cpu.sh [--seeds 0,3] "
+        "RECIPE...` reruns some recipes or seeds, the others keep their rows (and their commit "
+        "and machine, in the last table) from the committed report. A run is stable when its "
+        "validation s_T NLL with "
         f"prior skills is within {NLL_BAND} of its recipe's median and it reaches at least "
         f"{MIN_SUCCESS:.0%} of the random goals. Recipes: default = the shipped params "
         "(`train.e_prior: ema`, float32); bfloat16 = the same with `train.dtype: bfloat16` "
