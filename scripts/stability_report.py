@@ -101,7 +101,8 @@ def markdown(rows: list[dict], stamped: dict) -> str:
         "Written by `scripts/stability_report.py` (numbers: `stability-cpu.json`); "
         f"{stamp_text(stamped)}.",
         "",
-        "Command: `bash scripts/stability_cpu.sh` (two runs at a time, one torch thread each; "
+        "Command: `bash scripts/stability_cpu.sh` (two runs at a time, or one with `--jobs 1`; "
+        "one torch thread each; "
         "the main job's params, 5000 steps; deploy: the main job's 100 random goals "
         "and 100 corner-to-corner episodes); `bash scripts/stability_cpu.sh [--seeds 0,3] "
         "RECIPE...` reruns some recipes or seeds, the others keep their rows (and their commit "

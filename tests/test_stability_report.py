@@ -81,7 +81,7 @@ def test_rows_not_rerun_keep_their_earlier_commit_and_machine(tmp_path):
     assert "| bfloat16 | 1 of 1 | 1 | abc1234 | not recorded |" in text
 
 
-def test_the_sweep_script_refuses_a_bad_option_before_running_anything(tmp_path):
+def test_the_sweep_script_refuses_a_bad_option_before_running_anything():
     """`scripts/stability_cpu.sh` checks its recipes and `--jobs` first: a typo costs nothing."""
     script = ROOT / "scripts/stability_cpu.sh"
     for args, message in ((["--jobs", "3", "default"], "--jobs is 1 or 2, not 3"),
