@@ -82,7 +82,8 @@ PIPELINES = (
     "experiments/dvc.yaml",
     "experiments/ogbench/dvc.yaml",
     "experiments/antmaze/dvc.yaml",
-)  # the main job, the paper's experiments, OGBench's point mazes, the ant mazes
+    "experiments/manipulation/dvc.yaml",
+)  # the main job, the paper's experiments, OGBench's point mazes, the ant mazes, manipulation
 
 
 def _stages() -> dict[str, dict]:

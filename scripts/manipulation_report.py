@@ -1,0 +1,71 @@
+"""The manipulation datasets' reports (`pipeline/reporting/manipulation.py`), as the stages of
+`experiments/manipulation/dvc.yaml` run them:
+
+    # one dataset's report, from its data root:
+    python scripts/manipulation_report.py dataset cube-single-play \
+        data/experiments/manipulation/cube-single-play \
+        --notes experiments/manipulation/notes.json --lock experiments/manipulation/dvc.lock \
+        --out results/manipulation/cube-single-play.json
+    # the page, results/manipulation.md + .json, from the datasets' reports:
+    python scripts/manipulation_report.py page results/manipulation/*.json --out results
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from pipeline.errors import UserError
+from pipeline.reporting import manipulation
+from pipeline.reporting.common import lock_commands, read, stamp
+
+ROOT = Path(__file__).resolve().parents[1]
+PIPELINE = "uv run dvc repro experiments/manipulation/dvc.yaml"
+
+
+def _dataset(args: argparse.Namespace) -> None:
+    notes = (read(args.notes) if args.notes else None) or {}
+    commands = [f"{PIPELINE}:dataset@{args.name}"]
+    if args.lock:
+        ran = [c for c in lock_commands(args.lock) if c.endswith(f"@{args.name}")]
+        commands += ["# which ran (dvc.lock):", *ran]
+    report = manipulation.dataset_report(
+        args.name, args.root, notes.get(args.name, []), commands, stamp(ROOT)
+    )
+    manipulation.write_dataset(args.out, report)
+    print(f"wrote {args.out}")
+
+
+def _page(args: argparse.Namespace) -> None:
+    reports = []
+    for path in args.reports:
+        report = read(path)
+        if report is None:
+            raise UserError(f"{path} does not exist; run its stage (dataset@<dataset>) first")
+        reports.append(report)
+    manipulation.write_page(args.out, manipulation.page(reports, stamp(ROOT)))
+    print(f"wrote {args.out / 'manipulation.md'} and manipulation.json")
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    one = sub.add_parser("dataset", help="one dataset's report from its data root")
+    one.add_argument("name", help=f"one of {', '.join(manipulation.DATASETS)}")
+    one.add_argument("root", type=Path, help="its data root")
+    one.add_argument("--notes", type=Path, help="JSON: dataset -> a list of notes on its runs")
+    one.add_argument("--lock", type=Path, help="the pipeline's dvc.lock: its commands listed")
+    one.add_argument("--out", type=Path, required=True, help="the report's JSON file")
+    page = sub.add_parser("page", help="results/manipulation.md + .json from the datasets' reports")
+    page.add_argument("reports", type=Path, nargs="+", help="results/manipulation/<dataset>.json")
+    page.add_argument("--out", type=Path, default=ROOT / "results")
+    args = parser.parse_args(argv)
+    (_dataset if args.command == "dataset" else _page)(args)
+
+
+if __name__ == "__main__":
+    try:
+        main()
+    except UserError as exc:  # a corrupt report or a bad argument: one line, no traceback
+        sys.exit(f"error: {exc}")
