@@ -278,3 +278,16 @@ def test_committed_ant_lock_matches_params_code_and_results():
     and command it ran with, and results/antmaze.* as its report stage wrote them."""
     problems = _stale("experiments/antmaze/dvc.yaml")
     assert not problems, "experiments/antmaze/dvc.yaml: " + "; ".join(problems[:20])
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="stale lock: scene-play's deploys and the report stages have not finished on one "
+    "machine yet; run `uv run dvc repro experiments/manipulation/dvc.yaml` and commit its lock and "
+    "results/manipulation*",
+)
+def test_committed_manipulation_lock_matches_params_code_and_results():
+    """The manipulation pipeline ran as committed: its lock holds every stage with the params,
+    code and command it ran with, and results/manipulation.* as its stages wrote them."""
+    problems = _stale("experiments/manipulation/dvc.yaml")
+    assert not problems, "experiments/manipulation/dvc.yaml: " + "; ".join(problems[:20])
