@@ -39,7 +39,6 @@ from typing import Any
 
 from pipeline.errors import UserError
 from pipeline.evaluation import paper
-from pipeline.io import atomic_path, write_json
 from pipeline.reporting.common import (
     FAILS,
     HOLDS,
@@ -55,7 +54,9 @@ from pipeline.reporting.common import (
     reproduces,
     stamp_text,
     versus,
+    write_report,
 )
+from pipeline.reporting.common import write_page as write_results_page
 
 MAZES = ("medium", "large", "giant")
 TASKS = [f"ogbench-task{i}" for i in range(1, 6)]
@@ -487,13 +488,9 @@ def page(
 
 def write_maze(path: Path, report: Mapping[str, Any]) -> None:
     """A maze's report as JSON."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_json(path, report)
+    write_report(path, report)
 
 
 def write_page(out: Path, results: Mapping[str, Any]) -> None:
     """`out/antmaze.json` and `out/antmaze.md`."""
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "antmaze.json", results)
-    with atomic_path(out / "antmaze.md") as tmp:
-        tmp.write_text(render(results))
+    write_results_page(out, "antmaze", results, render(results))

@@ -48,6 +48,7 @@ import yaml
 
 from pipeline.errors import UserError
 from pipeline.evaluation.proportions import difference_interval, wilson_interval
+from pipeline.io import atomic_path, write_json
 
 Report = dict[str, Any]
 
@@ -323,3 +324,20 @@ def stamp_text(s: Mapping[str, Any]) -> str:
             f"(sha256 {digest})"
         )
     return text
+
+
+# --- writing ------------------------------------------------------------------------------------
+
+
+def write_report(path: Path, report: Mapping[str, Any]) -> None:
+    """One report as JSON (its folder made), written atomically."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_json(path, report)
+
+
+def write_page(out: Path, stem: str, results: Mapping[str, Any], text: str) -> None:
+    """A results page: `out/<stem>.json` (`results`) and `out/<stem>.md` (`text`), atomically."""
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / f"{stem}.json", results)
+    with atomic_path(out / f"{stem}.md") as tmp:
+        tmp.write_text(text)

@@ -32,7 +32,6 @@ from typing import Any
 from pipeline.errors import UserError
 from pipeline.evaluation import paper
 from pipeline.evaluation.paper_manipulation import KITCHEN_TABLE4, OGBENCH_MANIPULATION
-from pipeline.io import atomic_path, write_json
 from pipeline.reporting.common import (
     FAILS,
     HOLDS,
@@ -45,7 +44,9 @@ from pipeline.reporting.common import (
     read,
     stamp_text,
     versus,
+    write_report,
 )
+from pipeline.reporting.common import write_page as write_results_page
 
 DATASETS = ("cube-single-play", "cube-double-play", "scene-play")
 TASKS = [f"ogbench-task{i}" for i in range(1, 6)]
@@ -302,13 +303,9 @@ def page(reports: list[Mapping[str, Any]], stamp: Mapping[str, Any]) -> dict[str
 
 def write_dataset(path: Path, report: Mapping[str, Any]) -> None:
     """A dataset's report as JSON."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_json(path, report)
+    write_report(path, report)
 
 
 def write_page(out: Path, results: Mapping[str, Any]) -> None:
     """`out/manipulation.json` and `out/manipulation.md`."""
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "manipulation.json", results)
-    with atomic_path(out / "manipulation.md") as tmp:
-        tmp.write_text(render(results))
+    write_results_page(out, "manipulation", results, render(results))
