@@ -233,6 +233,13 @@ class TrainParams(_Section):
         description="The policy's two hidden layers: relu (appendix C) or layernorm_silu "
         "(LayerNorm + SiLU, as DreamerV3 and TD-MPC2). Prior and TAWM stay appendix C's.",
     )
+    policy_ignore_dims: list[int] = Field(
+        default_factory=list,
+        description="State dims the low-level policy does not see (the posterior, prior and "
+        "TAWM see all): where the state gives the next action away without the skill (an "
+        "arm's joint velocities under a position controller, docs/manipulation.md), the skill "
+        "must carry it. []: the paper's policy, which sees the whole state.",
+    )
     e_kl: Literal["sampled", "closed_form"] = Field(
         "sampled",
         description="The E-step's KL(q || prior). sampled: log q - log p at the drawn skill (eq. "

@@ -65,6 +65,13 @@ def model_config(cfg: TrainParams, segments: Segments) -> SkillModelConfig:
     if cfg.action_likelihood == "censored":  # the data's own bounds, where clipping piles up
         actions = segments.actions
         bounds = {"action_low": actions.min(0).tolist(), "action_high": actions.max(0).tolist()}
+    sd = segments.info.state_dim
+    ignored = set(cfg.policy_ignore_dims)
+    if any(not 0 <= d < sd for d in ignored) or len(ignored) == sd:
+        raise UserError(
+            f"train.policy_ignore_dims {sorted(ignored)}: the states have {sd} dims (0 to "
+            f"{sd - 1}); list some of them, not all (docs/manipulation.md)"
+        )
     return skill_model_config(cfg, segments.info.state_dim, segments.info.action_dim, **bounds)
 
 

@@ -199,3 +199,43 @@ def test_censored_config_checks_its_bounds():
         skill_model_config(2, 1, action_low=(-1.0,))
     with pytest.raises(ValueError, match="2 values for 1 dims"):
         skill_model_config(2, 1, action_low=(-1.0, -1.0), action_high=(1.0, 1.0))
+
+
+def test_policy_ignore_dims_hides_those_dims_from_the_policy_only(tmp_path):
+    config = skill_model_config(
+        state_dim=4,
+        action_dim=2,
+        z_dim=3,
+        hidden=8,
+        tawm_shared_std=True,
+        policy_ignore_dims=[2, 1],
+    )
+    assert config.policy_ignore_dims == (1, 2)
+    torch.manual_seed(0)
+    model = SkillModel(config)
+    model.set_normalization([1.0, 2.0, 3.0, 4.0], [2.0, 1.0, 0.5, 3.0], [0.1, -0.2], [0.5, 2.0])
+    s, z = torch.randn(5, 4), torch.randn(5, 3)
+    moved = s.clone()
+    moved[:, 1:3] += 10.0 * torch.randn(5, 2)  # only the ignored dims change
+    assert torch.equal(model.act(s, z), model.act(moved, z))
+    moved[:, 3] += 1.0  # a seen dim changes the action
+    assert not torch.allclose(model.act(s, z), model.act(moved, z))
+    # the TAWM still sees every dim
+    assert not torch.allclose(model.predict_end(s, z)[0], model.predict_end(moved, z)[0])
+    save_model(model, tmp_path, {})
+    back, _ = load_model(tmp_path, expected=config)
+    assert back.config.policy_ignore_dims == (1, 2)
+    assert torch.equal(back.act(s, z), model.act(s, z))
+
+
+@pytest.mark.parametrize("dims", [[4], [-1], [0, 1, 2, 3]])
+def test_policy_ignore_dims_must_leave_the_policy_some_state(dims):
+    with pytest.raises(ValueError, match="policy_ignore_dims"):
+        skill_model_config(
+            state_dim=4,
+            action_dim=2,
+            z_dim=3,
+            hidden=8,
+            tawm_shared_std=True,
+            policy_ignore_dims=dims,
+        )

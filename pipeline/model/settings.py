@@ -34,6 +34,7 @@ def skill_model_config(
         action_low=action_low,
         action_high=action_high,
         policy_layer_norm=cfg.policy_trunk == "layernorm_silu",
+        policy_ignore_dims=tuple(cfg.policy_ignore_dims),
     )
 
 

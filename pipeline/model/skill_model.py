@@ -14,7 +14,7 @@ from torch import nn
 from torch.distributions import Independent, Normal
 
 from pipeline.model.networks import GaussianHead, GaussianMLP
-from pipeline.readback import Finite, PositiveFinite, Size
+from pipeline.readback import Count, Finite, PositiveFinite, Size
 
 
 @dataclass(frozen=True)
@@ -41,6 +41,10 @@ class SkillModelConfig:
         policy_layer_norm: The policy's trunk normalizes its hidden layers (LayerNorm + SiLU,
             `networks.trunk`) instead of the paper's ReLU layers; the prior and TAWM (what the
             planner runs) keep the paper's.
+        policy_ignore_dims: State dims the low-level policy pi(a | s, z) does not see (sorted,
+            unique): what would tell it the next action without the skill (an arm's joint
+            velocities under a position controller) goes through z instead. Posterior, prior
+            and TAWM see every dim. Empty: the paper's policy, which sees the whole state.
     """
 
     state_dim: Size
@@ -52,8 +56,16 @@ class SkillModelConfig:
     action_low: tuple[Finite, ...] | None = None
     action_high: tuple[Finite, ...] | None = None
     policy_layer_norm: bool = False
+    policy_ignore_dims: tuple[Count, ...] = ()
 
     def __post_init__(self) -> None:
+        ignore = tuple(sorted({int(d) for d in self.policy_ignore_dims}))
+        if any(not 0 <= d < self.state_dim for d in ignore) or len(ignore) == self.state_dim:
+            raise ValueError(
+                f"policy_ignore_dims {list(ignore)} must be some, not all, of the state dims "
+                f"0 to {self.state_dim - 1}"
+            )
+        object.__setattr__(self, "policy_ignore_dims", ignore)
         bounds = (self.action_low, self.action_high)
         if (bounds[0] is None) != (bounds[1] is None):
             raise ValueError("action_low and action_high come together (both or neither)")
@@ -139,8 +151,10 @@ class SkillModel(nn.Module):
         sd, ad, z, h = config.state_dim, config.action_dim, config.z_dim, config.hidden
         self.posterior = SkillPosterior(config)
         self.prior = GaussianMLP(sd, h, z, min_std=config.min_std)
+        seen = [d for d in range(sd) if d not in set(config.policy_ignore_dims)]
+        self.register_buffer("policy_dims", torch.tensor(seen, dtype=torch.long), persistent=False)
         self.policy = GaussianMLP(
-            sd + z, h, ad, min_std=config.min_std, layer_norm=config.policy_layer_norm
+            len(seen) + z, h, ad, min_std=config.min_std, layer_norm=config.policy_layer_norm
         )
         self.tawm = GaussianMLP(
             sd + z, h, sd, shared_std=config.tawm_shared_std, min_std=config.min_std
@@ -184,12 +198,19 @@ class SkillModel(nn.Module):
         """p_omega(z | s_0) from normalized `s0 [..., sd]`."""
         return diag_normal(*self.prior(s0_n))
 
+    def policy_stats(self, s_n: torch.Tensor, z: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """pi_theta's mean, std `[..., ad]` (normalized actions) from normalized `s_n [..., sd]`
+        and `z [..., z]`; the policy sees the state dims not in `policy_ignore_dims`."""
+        if self.config.policy_ignore_dims:
+            s_n = s_n.index_select(-1, self.policy_dims)
+        return self.policy(torch.cat([s_n, z], dim=-1))
+
     def policy_log_prob(
         self, s_n: torch.Tensor, z: torch.Tensor, a_n: torch.Tensor
     ) -> torch.Tensor:
         """log pi_theta(a | s, z) `[...]` of normalized actions `a_n [..., ad]`, summed over
         dims: a Gaussian density, or censored at the action bounds (`SkillModelConfig`)."""
-        mean, std = self.policy(torch.cat([s_n, z], dim=-1))
+        mean, std = self.policy_stats(s_n, z)
         if not self.config.censored:
             return diag_normal(mean, std).log_prob(a_n)
         low, high = self.norm_actions(self.action_low), self.norm_actions(self.action_high)
@@ -221,7 +242,7 @@ class SkillModel(nn.Module):
     @torch.no_grad()
     def act(self, s: torch.Tensor, z: torch.Tensor, sample: bool = False) -> torch.Tensor:
         """Raw `s [..., sd]`, `z [..., z]` -> raw action `[..., ad]` (mean, or sampled)."""
-        mean, std = self.policy(torch.cat([self.norm_states(s), z], dim=-1))
+        mean, std = self.policy_stats(self.norm_states(s), z)
         a = mean + std * torch.randn_like(std) if sample else mean
         return self.clip_actions(a * self.action_std + self.action_mean)
 

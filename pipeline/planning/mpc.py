@@ -121,7 +121,7 @@ class SkillMPC:
         m = self.model
         idx = torch.as_tensor(rows, dtype=torch.long, device=self.device)
         s = torch.as_tensor(states, dtype=torch.float32, device=self.device)
-        mean, std = m.policy(torch.cat([m.norm_states(s), self._z[idx]], dim=-1))
+        mean, std = m.policy_stats(m.norm_states(s), self._z[idx])
         if self.sample_actions:
             keys = substream(self._action_keys[idx], self._steps[idx])
             mean = mean + std * normal(keys, mean.shape[1:])
