@@ -270,8 +270,10 @@ def test_two_queued_experiments_run_on_two_workers_and_share_the_run_cache(tmp_p
     strict=True,
     reason="stale lock: its report stages (maze@large, report) now list the report's own files of "
     "pipeline/reporting/ instead of the folder, so that a new report beside it (manipulation) "
-    "leaves them alone; they rerun with the next `uv run dvc repro experiments/antmaze/dvc.yaml` "
-    "(the whole chain: a fresh checkout has no data root to rerun them from)",
+    "leaves them alone; and its train stages: `train.policy_ignore_dims` (default [], the model "
+    "as before) joined params.yaml and pipeline/model/skill_model.py; they rerun with the next "
+    "`uv run dvc repro experiments/antmaze/dvc.yaml` (the whole chain: a fresh checkout has no "
+    "data root to rerun them from)",
 )
 def test_committed_ant_lock_matches_params_code_and_results():
     """The ant mazes' pipeline ran as committed: its lock holds every stage with the params, code
