@@ -432,6 +432,16 @@ _stage_command(
     show=_deploy_summary,
     reads_model=True,
 )
+_stage_command(
+    "oracle",
+    """Run OGBench's scripted oracles on its manipulation tasks: the reference beside the agents.
+
+    For cube-single, cube-double and scene datasets: OGBench's plan oracles (those that make the
+    play data), one subtask at a time toward each evaluation task's goal, in OGBench's own env,
+    on the starts of `oposm deploy`'s episodes (`deploy.episodes` per task). Use `--run oracle`:
+    writes <data>/runs/oracle/reports/deploy/report.json, in the deploy report's layout.
+    """,
+)
 
 
 @app.command()

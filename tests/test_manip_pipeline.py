@@ -345,3 +345,16 @@ def test_deploy_refuses_maze_only_settings_on_a_manipulation_env(tiny_run):
     for override, expected in cases.items():
         changed = load_params(ROOT / "params.yaml", [*TINY, override])
         assert expected in one_line_error(lambda p=changed: deploy.run(p, paths, progress=False))
+
+
+@pytest.mark.slow
+def test_the_oracle_stage_writes_a_deploy_report_the_manipulation_report_reads(tiny_run):
+    from pipeline.reporting.manipulation import collect
+    from stages import oracle
+
+    params, paths, _, _ = tiny_run
+    report = oracle.run(params, Paths.for_run(paths.root, "oracle"))
+    assert report["tasks"] == [*(f"ogbench-task{k}" for k in range(1, 6)), "ogbench"]
+    assert report["max_steps"] == 200 and report["episodes_per_task"] == 1
+    rows = {a["agent"]: a for a in collect(paths.root)["agents"]}
+    assert rows["oracle"]["tasks"]["ogbench"]["successes"] == 5  # cube-single: every task

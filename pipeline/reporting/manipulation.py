@@ -1,13 +1,13 @@
-"""results/manipulation.md + .json: OPOSM, LLP and GCBC on OGBench's manipulation datasets, beside
-OGBench's published table and the paper's FrankaKitchen rows, on `pipeline.reporting.common`'s
-format, verdict rules and stamp, with the published numbers of
+"""results/manipulation.md + .json: OPOSM, LLP, GCBC and OGBench's scripted oracle on OGBench's
+manipulation datasets, beside OGBench's published table and the paper's FrankaKitchen rows, on
+`pipeline.reporting.common`'s format, verdict rules and stamp, with the published numbers of
 `pipeline.evaluation.paper_manipulation`.
 
 One data root per dataset (`experiments/manipulation/dvc.yaml`:
 `data/experiments/manipulation/<dataset>/`): the data (ingest, segment; made here by OGBench's
-play oracles), training, validation and one deploy run per agent under `runs/<agent>/`, every
-agent on the same episodes of OGBench's five evaluation tasks (each task's own episode limit:
-200, 500 or 750 steps).
+play oracles), training, validation and one deploy run per agent under `runs/<agent>/` (the
+oracle's by `oposm oracle`, in the deploy report's layout), every agent on the same episodes of
+OGBench's five evaluation tasks (each task's own episode limit: 200, 500 or 750 steps).
 
 Two steps, so that a dataset's report outlives its data root (DVC's cache is local): stage
 `dataset@<dataset>` writes `results/manipulation/<dataset>.json` (`dataset_report`) from its
@@ -51,7 +51,7 @@ from pipeline.reporting.common import write_page as write_results_page
 DATASETS = ("cube-single-play", "cube-double-play", "scene-play")
 TASKS = [f"ogbench-task{i}" for i in range(1, 6)]
 OVERALL = "ogbench"
-AGENTS = ("oposm", "llp", "gcbc")  # the rows' order; other agents after
+AGENTS = ("oposm", "llp", "gcbc", "oracle")  # the rows' order; other agents after
 ENV_IDS = {"cube-single-play": "cube-single-v0", "cube-double-play": "cube-double-v0",
            "scene-play": "scene-v0"}  # fmt: skip
 
@@ -222,12 +222,13 @@ def render(results: Mapping[str, Any]) -> str:
         "success = OGBench's rule (every cube within 0.04 m of its goal; the scene's buttons, "
         "drawer and window in their goal states), episodes of the env's 200 / 500 / 750 steps.",
         "- Data: OGBench's `play` recipe (its plan oracles with smoothed noise 0.1, a new "
-        "subtask each time one ends), generated here in the sizes of each overlay (CPU-sized: "
-        "far fewer steps than OGBench's 1000 episodes of 1001 steps).",
+        "subtask each time one ends), generated here in each dataset's size (its section; "
+        "CPU-sized: fewer steps than OGBench's 1000 episodes of 1001 steps).",
         "- Agents: OPOSM (CEM over skills with the goal cost in success tolerances), LLP (the "
         "paper's low-level planner: a BC action prior and a single-step model), GCBC (ours, on "
-        "the goal dims). OGBench's oracle on the evaluation tasks is not run (its oracles pursue "
-        "the subtasks its data collection draws, not an evaluation goal).",
+        "the goal dims), and the reference row `oracle`: OGBench's own plan oracles (those that "
+        "made the data, without their noise) in OGBench's env, one subtask at a time toward the "
+        "task's goal (`oposm oracle`, `pipeline/envs/manipspace_solver.py`), on the same starts.",
         "- Intervals: 95 % Wilson; verdicts by the rules of `pipeline/reporting/common.py` "
         "(docs/experiments.md).",
         "",
