@@ -282,12 +282,6 @@ def test_committed_ant_lock_matches_params_code_and_results():
     assert not problems, "experiments/antmaze/dvc.yaml: " + "; ".join(problems[:20])
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="stale lock: deploy_llp@scene-play (about 40 min on one core), dataset@scene-play and "
-    "report have not run since the recipe changed (every other stage has); run `uv run dvc repro "
-    "experiments/manipulation/dvc.yaml` and commit its lock and results/manipulation*",
-)
 def test_committed_manipulation_lock_matches_params_code_and_results():
     """The manipulation pipeline ran as committed: its lock holds every stage with the params,
     code and command it ran with, and results/manipulation.* as its stages wrote them."""
