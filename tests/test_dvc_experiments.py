@@ -134,8 +134,8 @@ RERUN = {
     "experiments/dvc.yaml": "`uv run dvc repro` (the main job), then `uv run dvc repro "
     "experiments/dvc.yaml`, and commit experiments/dvc.lock and results/ (its stages' params.yaml "
     "sections and code changed since it was written)",
-    OGB: f"`uv run dvc repro {OGB}` and commit its dvc.lock and results/ogbench-point.* (the "
-    "pipeline has not run yet: no lock)",
+    OGB: f"`uv run dvc repro {OGB}` and commit its dvc.lock and results/ogbench-point.* (its "
+    "lock holds only the giant and giant-stitch5k stages run so far)",
 }
 
 
