@@ -5,8 +5,12 @@
     python scripts/antmaze_report.py maze large data/experiments/antmaze/large \
         --notes experiments/antmaze/notes.json --lock experiments/antmaze/dvc.lock \
         --out results/antmaze/large.json
+    # a maze's mass sweep (paper figure 5), from the runs mass<...> of its data root:
+    python scripts/antmaze_report.py figure5 large data/experiments/antmaze/large \
+        --lock experiments/antmaze/dvc.lock --out results/antmaze/large-figure5.json
     # the page, results/antmaze.md + .json, from the mazes' reports:
-    python scripts/antmaze_report.py page results/antmaze/large.json [...] --out results
+    python scripts/antmaze_report.py page results/antmaze/large.json [...] \
+        [--figure5 results/antmaze/large-figure5.json ...] --out results
 """
 
 from __future__ import annotations
@@ -36,15 +40,31 @@ def _maze(args: argparse.Namespace) -> None:
     print(f"wrote {args.out}")
 
 
-def _page(args: argparse.Namespace) -> None:
+def _figure5(args: argparse.Namespace) -> None:
+    commands = [f"{PIPELINE}:figure5"]
+    if args.lock:
+        ran = [c for c in lock_commands(args.lock) if "--run mass" in c and f"/{args.name} " in c]
+        commands += ["# which ran (dvc.lock):", *ran]
+    report = antmaze.figure5_report(args.name, args.root, commands, stamp(ROOT))
+    antmaze.write_maze(args.out, report)
+    print(f"wrote {args.out}")
+
+
+def _reports(paths: list[Path], stage: str) -> list[dict]:
     reports = []
-    for path in args.reports:
+    for path in paths:
         report = read(path)
         if report is None:
-            raise UserError(f"{path} does not exist; run its stage (maze@<maze>) first")
+            raise UserError(f"{path} does not exist; run its stage ({stage}) first")
         reports.append(report)
+    return reports
+
+
+def _page(args: argparse.Namespace) -> None:
+    reports = _reports(args.reports, "maze@<maze>")
+    sweeps = _reports(args.figure5, "figure5")
     expert = antmaze.expert_info(read(ROOT / "experts" / "ant" / "actor.json") or {})
-    antmaze.write_page(args.out, antmaze.page(reports, expert, stamp(ROOT)))
+    antmaze.write_page(args.out, antmaze.page(reports, expert, stamp(ROOT), sweeps))
     print(f"wrote {args.out / 'antmaze.md'} and antmaze.json")
 
 
@@ -57,11 +77,18 @@ def main(argv: list[str] | None = None) -> None:
     maze.add_argument("--notes", type=Path, help="JSON: maze -> a list of notes on its runs")
     maze.add_argument("--lock", type=Path, help="the pipeline's dvc.lock: its commands listed")
     maze.add_argument("--out", type=Path, required=True, help="the report's JSON file")
+    fig5 = sub.add_parser("figure5", help="a maze's mass sweep (paper figure 5) from its root")
+    fig5.add_argument("name", help=f"one of {', '.join(antmaze.MAZES)}")
+    fig5.add_argument("root", type=Path, help="its data root (runs/mass<...>/)")
+    fig5.add_argument("--lock", type=Path, help="the pipeline's dvc.lock: its commands listed")
+    fig5.add_argument("--out", type=Path, required=True, help="the report's JSON file")
     page = sub.add_parser("page", help="results/antmaze.md + .json from the mazes' reports")
     page.add_argument("reports", type=Path, nargs="+", help="results/antmaze/<maze>.json files")
+    page.add_argument("--figure5", type=Path, nargs="*", default=[],
+                      help="results/antmaze/<maze>-figure5.json files")  # fmt: skip
     page.add_argument("--out", type=Path, default=ROOT / "results")
     args = parser.parse_args(argv)
-    (_maze if args.command == "maze" else _page)(args)
+    {"maze": _maze, "figure5": _figure5, "page": _page}[args.command](args)
 
 
 if __name__ == "__main__":

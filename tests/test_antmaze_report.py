@@ -87,8 +87,13 @@ def test_collect_renders_both_protocols_the_ladder_and_each_verdict(tmp_path):
     assert agents["oposm"]["tasks"]["ogbench"]["ogbench"]["successes"] == 200
     assert agents["oposm"]["tasks"]["ogbench"]["paper"]["successes"] == 245
     assert agents["oposm (run old)"]["tasks"]["ogbench"]["paper"] is None
-    assert set(maze["mass_sweep"]["oposm"]) == {"0.5", "1.0", "2.0"}
-    checks = {c["claim"].split(" (")[0]: c for c in antmaze.verdicts("medium", maze)}
+    assert "mass_sweep" not in maze  # the mass runs are figure 5's report
+    stamp = {"commit": "abc", "machine": "test box", "dvc": None}
+    sweep = antmaze.figure5_report("medium", tmp_path / "medium", ["cmd mass"], stamp)
+    assert set(sweep["mass_sweep"]["oposm"]) == {"0.5", "1.0", "2.0"}
+    assert sweep["episodes_per_factor"] == 50
+    checks = {c["claim"].split(" (")[0]: c
+              for c in antmaze.verdicts("medium", maze) + sweep["verdicts"]}  # fmt: skip
     # rule 3 against OGBench's table: 80 % [74, 85] is below HIQL's 96 +- 1
     top = checks["OPOSM is above every published method on antmaze-medium-navigate"]
     assert top["verdict"] == FAILS and "HIQL 96 ± 1" in top["detail"]
@@ -98,9 +103,9 @@ def test_collect_renders_both_protocols_the_ladder_and_each_verdict(tmp_path):
     # rule 5: off x1 pooled, oposm 60 of 100 against the expert's 10 of 100
     fig5 = checks["OPOSM keeps more of its success under mass changes than the expert"]
     assert fig5["verdict"] == HOLDS and fig5["interval"][0] > 0
-    report = antmaze.maze_report("medium", tmp_path / "medium", ["a note"], ["cmd a"],
-                                 {"commit": "abc", "machine": "test box", "dvc": None})  # fmt: skip
-    antmaze.write_page(tmp_path / "out", antmaze.page([report], {"steps": 5}, report["stamp"]))
+    report = antmaze.maze_report("medium", tmp_path / "medium", ["a note"], ["cmd a"], stamp)
+    page = antmaze.page([report], {"steps": 5}, stamp, [sweep])
+    antmaze.write_page(tmp_path / "out", page)
     text = (tmp_path / "out/antmaze.md").read_text()
     assert "| oposm | 50 | 80 [67, 89] | 80 [67, 89] |" in text
     assert text.index("| oposm | 50") < text.index("| oposm (run old)") < text.index("| gcbc | 50")
@@ -108,6 +113,8 @@ def test_collect_renders_both_protocols_the_ladder_and_each_verdict(tmp_path):
     assert "| 1 | 9 | 0.26 | 0.32 | 1.16 |" in text  # skill fidelity, executed vs TAWM vs none
     assert "| x0.5 | 50 [37, 63] | 10 [4, 21] | 51 | 49 |" in text  # beside the paper's fig. 5
     assert "code at commit abc" in text and "test box" in text and "cmd a" in text
+    assert "cmd mass" in text and "50 episodes per factor" in text
+    assert "under mass changes" in text.split("## Protocol")[0]  # its verdict with the others
     saved = json.loads((tmp_path / "out/antmaze.json").read_text())
     flat = {(r["agent"], r["protocol"]): r for r in saved["runs"]}
     assert flat[("oposm", "paper")]["tasks"]["ogbench"] == {"episodes": 250, "successes": 245}
@@ -148,6 +155,27 @@ def test_script_writes_each_mazes_report_then_the_page_from_them(tmp_path):
         antmaze_report.main(["maze", "huge", str(tmp_path), "--out", str(tmp_path / "x.json")])
     with pytest.raises(UserError, match="does not exist"):
         antmaze_report.main(["page", str(reports / "giant.json"), "--out", str(out)])
+
+
+def test_figure5_is_its_own_report_and_joins_its_maze_on_the_page(tmp_path):
+    root = _maze(tmp_path / "large")
+    reports = tmp_path / "results/antmaze"
+    antmaze_report.main(["maze", "large", str(root), "--out", str(reports / "large.json")])
+    fig5 = reports / "large-figure5.json"
+    antmaze_report.main(["figure5", "large", str(root), "--out", str(fig5)])
+    out = tmp_path / "results"
+    antmaze_report.main(["page", str(reports / "large.json"), "--figure5", str(fig5),
+                         "--out", str(out)])  # fmt: skip
+    saved = json.loads((out / "antmaze.json").read_text())
+    claims = [c["claim"] for c in saved["verdicts"]["large"]]
+    assert any("mass changes" in c for c in claims) and any("table 1" in c for c in claims)
+    assert saved["mazes"]["large"]["figure5"]["mass_sweep"]["expert"]["0.5"]["successes"] == 5
+    antmaze_report.main(["maze", "medium", str(root), "--out", str(reports / "medium.json")])
+    with pytest.raises(UserError, match="no maze report beside it"):  # a sweep needs its maze
+        antmaze_report.main(["page", str(reports / "medium.json"), "--figure5", str(fig5),
+                             "--out", str(out)])  # fmt: skip
+    with pytest.raises(UserError, match="no mass"):  # a root without a sweep
+        antmaze_report.main(["figure5", "large", str(tmp_path / "empty"), "--out", str(fig5)])
 
 
 def test_a_corrupt_report_is_a_one_line_error_naming_it(tmp_path):

@@ -5,13 +5,15 @@ format, verdict rules and stamp, with the published numbers of `pipeline.evaluat
 One data root per maze (`experiments/antmaze/dvc.yaml`: `data/experiments/antmaze/<maze>/`): the
 data (ingest, segment), training, validation (the ladder's skill fidelity and prior-skill open
 loop), and deploy runs under `runs/<run>/`: one per agent on OGBench's five tasks, one on goals
-from the training data (`random_goal`, the development metric), and runs named `mass<factor>`
+from the training data (`random_goal`, the development metric), and runs named `mass<...>`
 (figure 5: `deploy.mass_scale`).
 
 Two steps, so that a maze's report outlives its data root (DVC's cache is local: a maze run
 on another day or machine keeps its report in git): stage `maze@<maze>` writes the maze's report,
-`results/antmaze/<maze>.json` (`maze_report`), from its data root; stage `report` writes the page,
-`results/antmaze.md` and `.json` (`page`), from every maze's report.
+`results/antmaze/<maze>.json` (`maze_report`), from its data root; stage `figure5` writes the mass
+sweep's, `results/antmaze/<maze>-figure5.json` (`figure5_report`), from the same root's mass runs
+alone (its own stage: a maze without a sweep has no such runs to depend on); stage `report` writes
+the page, `results/antmaze.md` and `.json` (`page`), from every maze's and sweep's report.
 
 Two protocols from one run. The deploys run the paper code's episodes (`deploy.max_steps: 2000`,
 success when the ant comes within 0.5 of the goal); OGBench's protocol (1000 steps, 0.5) is the
@@ -151,7 +153,8 @@ def _mass_sweep(runs: list[tuple[str, dict[str, Any]]]) -> dict[str, dict[str, A
 
 
 def collect(root: Path) -> dict[str, Any]:
-    """One maze's data root: its stage reports, its agents, goals from the data, mass sweep."""
+    """One maze's data root: its stage reports, its agents, goals from the data (its mass runs
+    are `figure5_report`'s)."""
     reports = root / "reports"
     out: dict[str, Any] = {"data_root": root.as_posix()}
     for stage in ("ingest", "segment", "dynamics", "validate"):
@@ -160,7 +163,6 @@ def collect(root: Path) -> dict[str, Any]:
     runs = _runs(root)
     out["agents"] = _agents(runs)
     out["random_goal"] = _random_goal(runs)
-    out["mass_sweep"] = _mass_sweep(runs)
     return out
 
 
@@ -197,16 +199,22 @@ def verdicts(name: str, maze: Mapping[str, Any]) -> list[dict[str, Any]]:
                     f"{what}; the paper's protocol)", "verdict": word, "interval": interval,
                     "detail": f"OPOSM {percent(ours['rate'], *ours['ci95'])} vs the paper's "
                     f"{percent(mean)} (as {paper.EPISODES_MAZE2D} episodes)"})  # fmt: skip
-    sweep = maze.get("mass_sweep") or {}
-    if "oposm" in sweep and "expert" in sweep:
-        a, b = off_nominal(sweep["oposm"]), off_nominal(sweep["expert"])
-        if a and b:
-            word, interval = versus(a, b)
-            out.append({"claim": "OPOSM keeps more of its success under mass changes than the "
-                        "expert (paper figure 5)", "verdict": word, "interval": interval,
-                        "detail": f"off x1, pooled: OPOSM {percent(a['rate'], *a['ci95'])} vs "
-                        f"expert {percent(b['rate'], *b['ci95'])}"})  # fmt: skip
     return out
+
+
+def mass_verdicts(sweep: Mapping[str, Mapping[str, Any]] | None) -> list[dict[str, Any]]:
+    """Figure 5's claim on a mass sweep (`_mass_sweep`), when both OPOSM and the expert ran."""
+    sweep = sweep or {}
+    if not ("oposm" in sweep and "expert" in sweep):
+        return []
+    a, b = off_nominal(sweep["oposm"]), off_nominal(sweep["expert"])
+    if not (a and b):
+        return []
+    word, interval = versus(a, b)
+    return [{"claim": "OPOSM keeps more of its success under mass changes than the expert "
+             "(paper figure 5)", "verdict": word, "interval": interval,
+             "detail": f"off x1, pooled: OPOSM {percent(a['rate'], *a['ci95'])} vs expert "
+             f"{percent(b['rate'], *b['ci95'])}"}]  # fmt: skip
 
 
 # --- rendering ----------------------------------------------------------------------------------
@@ -403,11 +411,16 @@ def render(results: Mapping[str, Any]) -> str:
             if not maze["agents"]:
                 lines += _agent_rows([])
             lines.append(row)
-        if maze.get("mass_sweep"):
+        fig5 = maze.get("figure5")
+        if fig5 and fig5.get("mass_sweep"):
             lines += ["", "Robustness to the ant's mass (paper figure 5: every body's mass and "
                       "inertia times the factor, the models unchanged), success % on OGBench's "
-                      "five tasks pooled, OGBench's protocol, beside the paper's (antmaze-large, "
-                      "its protocol):", "", *_mass_rows(maze["mass_sweep"])]  # fmt: skip
+                      f"five tasks pooled ({fig5['episodes_per_factor']} episodes per factor and "
+                      "agent), OGBench's protocol, beside the paper's (antmaze-large, its "
+                      "protocol):", "", *_mass_rows(fig5["mass_sweep"]), "",
+                      f"The sweep's report: `results/antmaze/{name}-figure5.json`, "
+                      f"{stamp_text(fig5['stamp'])}. Its commands:", "", "```bash",
+                      *fig5.get("commands", []), "```"]  # fmt: skip
         lines += ["", _published_line(name), ""]
         lines += [f"This maze's report: `results/antmaze/{name}.json`, "
                   f"{stamp_text(maze['stamp'])}. Its commands:", "", "```bash",
@@ -457,12 +470,39 @@ def maze_report(
     return {"maze": name, "stamp": dict(stamp), **maze, "verdicts": verdicts(name, maze)}
 
 
-def page(
-    reports: list[Mapping[str, Any]], expert: Mapping[str, Any], stamp: Mapping[str, Any]
+def figure5_report(
+    name: str, root: Path, commands: list[str], stamp: Mapping[str, Any]
 ) -> dict[str, Any]:
-    """The page's JSON (stage `report`, `results/antmaze.json`) from the mazes' reports, in
-    `MAZES`' order: the mazes, their verdicts, the flat runs, the published numbers."""
+    """A maze's mass sweep (stage `figure5`, `results/antmaze/<maze>-figure5.json`) from the runs
+    named `mass<...>` of its data root: agent -> factor -> success, figure 5's verdict."""
+    if name not in MAZES:
+        raise UserError(f"maze {name!r} is not one of {MAZES}")
+    runs = [(run, report) for run, report in _runs(root) if run.startswith(MASS_RUN)]
+    if not runs:
+        raise UserError(f"{root / 'runs'}: no mass<...>/reports/deploy; run the mass@ stages")
+    sweep = _mass_sweep(runs)
+    return {"maze": name, "stamp": dict(stamp), "mass_sweep": sweep,
+            "episodes_per_factor": max(len(TASKS) * r["episodes_per_task"] for _, r in runs),
+            "verdicts": mass_verdicts(sweep), "commands": list(commands)}  # fmt: skip
+
+
+def page(
+    reports: list[Mapping[str, Any]],
+    expert: Mapping[str, Any],
+    stamp: Mapping[str, Any],
+    figure5: list[Mapping[str, Any]] = (),
+) -> dict[str, Any]:
+    """The page's JSON (stage `report`, `results/antmaze.json`) from the mazes' reports and
+    their mass sweeps', in `MAZES`' order: the mazes, their verdicts, the flat runs, the
+    published numbers."""
     mazes = {r["maze"]: dict(r) for r in sorted(reports, key=lambda r: MAZES.index(r["maze"]))}
+    for sweep in figure5:
+        if sweep["maze"] not in mazes:
+            raise UserError(f"the mass sweep of {sweep['maze']} has no maze report beside it; "
+                            f"add results/antmaze/{sweep['maze']}.json")  # fmt: skip
+        maze = mazes[sweep["maze"]]
+        maze["figure5"] = dict(sweep)
+        maze["verdicts"] = [*maze["verdicts"], *sweep["verdicts"]]
     published = {
         ogbench_name(m): {k: [round(100 * a), round(100 * b)] for k, (a, b) in t.items()}
         for m in MAZES if (t := paper.OGBENCH.get(ogbench_name(m)))
