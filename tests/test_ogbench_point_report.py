@@ -45,11 +45,13 @@ def test_the_report_puts_runs_beside_ogbench_with_a_verdict(tmp_path):
     assert "| medium | sub | 100 [93, 100] | 100 [93, 100] | 98 [90, 100] |" in text
     assert "| **100 [98, 100]** | 250 |" in text  # 249 of 250
     assert "| medium | 9 ± 6 | 63 ± 6 | 53 ± 8 | 82 ± 5 | 29 ± 7 | 79 ± 5 | QRL 82 |" in text
-    # rule 3: 249/250 against QRL's 82 +- 5 over 8 seeds, the closest of the six
-    assert "- medium: **holds**: sub 100 [98, 100] vs QRL 82 ± 5 (the method deciding it), " in text
+    # rule 3: 249/250 against every method, OGBench's and the later ones (SAW's 97 +- 2 over 8
+    # seeds, the closest)
+    assert "- medium: **holds**: sub 100 [98, 100] vs SAW 97 ± 2 (the method deciding it), " in text
+    assert "| medium | 97 ± 2 |" in text and "| medium-stitch | 87 ± 4 |" in text  # SAW's tables
     assert "- medium: ours 100 [98, 100], OGBench's 9 ± 6; difference [" in text
     assert "| medium-stitch | 23 ± 18 | 70 ± 14 | 21 ± 9 | 80 ± 12 | 0 ± 1 | 74 ± 6 |" in text
-    assert "- medium-stitch: **inconclusive**: sub 80 [75, 84] vs QRL 80 ± 12 " in text
+    assert "- medium-stitch: **does not hold**: sub 80 [75, 84] vs SAW 87 ± 4 " in text
     assert "Made by `scripts/ogbench_point_report.py`" in text and "code at commit" in text
     data = json.loads((out / "ogbench-point.json").read_text())
     assert [r["label"] for r in data["runs"]] == ["sub", "plain", "GCBC (ours)", "sub"]
@@ -57,6 +59,7 @@ def test_the_report_puts_runs_beside_ogbench_with_a_verdict(tmp_path):
     assert data["runs"][1]["tasks"]["ogbench-task3"]["successes"] == 5
     assert data["published"]["giant"]["QRL"] == [68, 7]
     assert data["published"]["giant-stitch"]["QRL"] == [50, 8]
+    assert data["published"]["medium"]["SAW"] == [97, 2]
     # --keep: the earlier rows stay (their run folders gone); the same DATASET/LABEL is replaced.
     for run in (good, weak, gcbc, stitch):
         (run / "reports" / "deploy" / "report.json").unlink()
@@ -73,7 +76,7 @@ def test_the_report_puts_runs_beside_ogbench_with_a_verdict(tmp_path):
     assert data["commands"] == ["uv run oposm deploy ...", "uv run oposm deploy --run better"]
     assert data["machine"] == "the first box"  # kept with the rows
     text = (out / "ogbench-point.md").read_text()
-    assert "- medium-stitch: **inconclusive**: sub 90 [86, 93] vs QRL 80 ± 12 " in text
+    assert "- medium-stitch: **inconclusive**: sub 90 [86, 93] vs SAW 87 ± 4 " in text
     assert "| teleport | not quoted | not quoted |" in text
     assert "- teleport: sub 60 [54, 66]; no published number is quoted here" in text
 

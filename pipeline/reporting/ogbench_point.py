@@ -1,6 +1,7 @@
 """results/ogbench-point.md + .json: OPOSM under OGBench's protocol on its point mazes, beside
 OGBench's published table (issue 18), on `pipeline.reporting.common`'s format, verdict rules and
-stamp, with the published numbers of `pipeline.evaluation.paper.OGBENCH`.
+stamp, with the published numbers of `pipeline.evaluation.paper.OGBENCH` and of the methods that
+came after it (`pipeline.evaluation.paper_after_ogbench`).
 
 A row is one `oposm deploy` run (its `reports/deploy/report.json`) on OGBench's five evaluation
 tasks: its agent (oposm, or the run's only agent, e.g. gcbc) per task and pooled. A row's dataset
@@ -16,8 +17,8 @@ Two ways to make the report (`scripts/ogbench_point_report.py` is the command li
   rows that exist (`report_from_rows`), listing the commands dvc.lock recorded.
 
 Verdict per dataset (rule 3 of `pipeline.reporting.common`, `above_every`): our best OPOSM run
-against every method of OGBench's row, the MOVER interval of our rate minus each method's mean
-over its 8 seeds; holds when every interval lies above 0.
+against every method of OGBench's row and every later method quoted, the MOVER interval of our
+rate minus each method's mean over its 8 seeds; holds when every interval lies above 0.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from typing import Any
 import yaml
 
 from pipeline.errors import UserError
-from pipeline.evaluation import paper
+from pipeline.evaluation import paper, paper_after_ogbench
 from pipeline.io import atomic_path, write_json
 from pipeline.reporting.common import (
     above_every,
@@ -57,6 +58,20 @@ def ogbench_name(dataset: str) -> str:
 def published(dataset: str) -> dict[str, tuple[float, float]] | None:
     """OGBench's row for a dataset (method -> (mean, std), fractions), None where not quoted."""
     return paper.OGBENCH.get(ogbench_name(dataset))
+
+
+def published_after(dataset: str) -> dict[str, tuple[float, float]]:
+    """The later methods' numbers for a dataset (method -> (mean, std)), {} where none."""
+    return paper_after_ogbench.AFTER_OGBENCH.get(ogbench_name(dataset), {})
+
+
+def every_published(dataset: str) -> dict[str, tuple[float, float]] | None:
+    """OGBench's row and the later methods' (each over `paper.OGBENCH_SEEDS` seeds, as
+    `above_every` takes one count), None where neither is quoted."""
+    if any(n != paper.OGBENCH_SEEDS for n in paper_after_ogbench.SEEDS.values()):
+        raise ValueError("a later method ran another number of seeds: give above_every each's")
+    row = {**(published(dataset) or {}), **published_after(dataset)}
+    return row or None
 
 
 def parse_spec(spec: str) -> tuple[str, str, Path]:
@@ -111,13 +126,24 @@ def _published_rows(datasets: list[str]) -> list[str]:
         best = max(methods, key=lambda m: row[m][0])
         lines.append(f"| {dataset} | " + " | ".join(mean_std(*row[m]) for m in methods)
                      + f" | {best} {percent(row[best][0], digits=0)} |")  # fmt: skip
+    later = sorted({m for d in datasets for m in published_after(d)})
+    if later:
+        lines += ["", "Methods published after OGBench, their own runs under its protocol "
+                  "(mean ± std over 8 seeds; `pipeline/evaluation/paper_after_ogbench.py` names "
+                  "each paper and table):", "", "| dataset | " + " | ".join(later) + " |",
+                  "|---|" + "---|" * len(later)]  # fmt: skip
+        for dataset in datasets:
+            row = published_after(dataset)
+            lines.append(f"| {dataset} | " + " | ".join(
+                mean_std(*row[m]) if m in row else "–" for m in later) + " |")  # fmt: skip
     return lines
 
 
 def _verdicts(runs: list[dict[str, Any]], datasets: list[str]) -> list[str]:
     lines = [
-        'Verdict per dataset, "OPOSM is above every published method" (our best run\'s 95 % '
-        "interval against each method's mean over its 8 seeds, the MOVER interval of the "
+        'Verdict per dataset, "OPOSM is above every published method" (OGBench\'s and the later '
+        "ones; our best run's 95 % interval against each method's mean over its 8 seeds, the "
+        "MOVER interval of the "
         "difference in points: holds when it lies above 0 for every method, does not hold when "
         "below 0 for one; `pipeline/reporting/common.py`, rule 3):",
     ]
@@ -127,7 +153,7 @@ def _verdicts(runs: list[dict[str, Any]], datasets: list[str]) -> list[str]:
             continue
         top = max(ours, key=lambda r: r["tasks"][OVERALL]["success_rate"])
         overall = top["tasks"][OVERALL]
-        row = published(dataset)
+        row = every_published(dataset)
         if row is None:
             lines.append(f"- {dataset}: {top['label']} {_cell(overall)}; no published number "
                          "is quoted here to compare with.")  # fmt: skip
@@ -199,10 +225,11 @@ def render(
 
 
 def published_json(datasets: list[str] = DATASETS) -> dict[str, dict[str, list[int]]]:
-    """OGBench's rows as printed (percent): dataset -> method -> [mean, std]."""
+    """OGBench's rows and the later methods' as printed (percent): dataset -> method ->
+    [mean, std]."""
     out = {}
     for dataset in datasets:
-        row = published(dataset)
+        row = every_published(dataset)
         if row is not None:
             out[dataset] = {m: [round(100 * a), round(100 * b)] for m, (a, b) in row.items()}
     return out
