@@ -266,14 +266,6 @@ def test_two_queued_experiments_run_on_two_workers_and_share_the_run_cache(tmp_p
     ).exists()
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="stale lock: ingest, segment and train@large reran on 2026-12-04 (the same MCAP bit for "
-    "bit); the stages after them (dynamics, gcbc, validate, the deploys, maze@large, report) still "
-    "hold the code of pipeline/model, pipeline/planning and pipeline/reporting before "
-    "`train.policy_ignore_dims` and the per-file report deps; they rerun with the next `uv run dvc "
-    "repro experiments/antmaze/dvc.yaml` (the whole chain: a fresh checkout has no data root)",
-)
 def test_committed_ant_lock_matches_params_code_and_results():
     """The ant mazes' pipeline ran as committed: its lock holds every stage with the params, code
     and command it ran with, and results/antmaze.* as its report stage wrote them."""
