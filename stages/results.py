@@ -246,8 +246,9 @@ def _em_vi_kl(results: dict[str, Any]) -> str:
     if e_kl == "closed_form":
         return ("EM's E-step with VI's closed-form KL (`em_vi.e_kl`), so that the two differ in "
                 "their updates only")  # fmt: skip
-    return (f"EM's E-step with the {e_kl or 'sampled'} KL, VI's in closed form (runs made "
-            "before `em_vi.e_kl`: the estimators differ too)")  # fmt: skip
+    when = "`em_vi.e_kl`" if e_kl else "runs made before `em_vi.e_kl`"
+    return (f"EM's E-step with the {e_kl or 'sampled'} KL, VI's in closed form ({when}: the "
+            "estimators differ too)")  # fmt: skip
 
 
 def markdown(results: dict[str, Any]) -> str:

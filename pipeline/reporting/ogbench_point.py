@@ -67,9 +67,8 @@ def published_after(dataset: str) -> dict[str, tuple[float, float]]:
 
 def every_published(dataset: str) -> dict[str, tuple[float, float]] | None:
     """OGBench's row and the later methods' (each over `paper.OGBENCH_SEEDS` seeds, as
-    `above_every` takes one count), None where neither is quoted."""
-    if any(n != paper.OGBENCH_SEEDS for n in paper_after_ogbench.SEEDS.values()):
-        raise ValueError("a later method ran another number of seeds: give above_every each's")
+    `above_every` takes one count: tests/test_ogbench_point_report.py holds them to it), None
+    where neither is quoted."""
     row = {**(published(dataset) or {}), **published_after(dataset)}
     return row or None
 
