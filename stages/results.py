@@ -281,12 +281,11 @@ def markdown(results: dict[str, Any]) -> str:
         "",
         "The paper's table 3 compares the two on antmaze-medium and -large (success) and "
         "kitchen (reward); here on the main job's maze and the same maze with random pushes "
-        "(`em_vi.pushes` in "
-        f"experiments/params.yaml), EM and naive VI with each seed, {_em_vi_kl(results)}; "
-        "per seed: the TAWM after one prior skill (NLL "
-        "of the real outcome, fraction within 1 sigma: 68.3 % when calibrated, mean position "
-        "error), OPOSM's deploy success and its optimism gap (real minus "
-        "predicted distance to the goal where each plan's first skill ends).",
+        "(`em_vi.pushes` in experiments/params.yaml), EM and naive VI with each seed, "
+        f"{_em_vi_kl(results)}; per seed: the TAWM after one prior skill (NLL of the real "
+        "outcome, fraction within 1 sigma: 68.3 % when calibrated, mean position error), "
+        "OPOSM's deploy success and its optimism gap (real minus predicted distance to the goal "
+        "where each plan's first skill ends).",
         "",
         *em_vi_tables(results["em_vi"]),
         "",
