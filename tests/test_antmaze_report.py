@@ -122,6 +122,28 @@ def test_collect_renders_both_protocols_the_ladder_and_each_verdict(tmp_path):
     assert saved["published"]["antmaze-large-navigate"]["HIQL"] == [91, 2]
 
 
+def test_llp_on_the_same_tasks_is_judged_by_rule_1_beside_the_papers_table_1(tmp_path):
+    root = tmp_path / "large"
+    _write(root, "runs/oposm/reports/deploy/report.json",
+           _deploy("oposm", [45] * 5, within=[40] * 5))  # fmt: skip
+    # LLP: 10 episodes per task, 1000 steps (OGBench's protocol only), 3 of 10 reached
+    _write(root, "runs/llp/reports/deploy/report.json",
+           _deploy("llp", [3] * 5, n=10, max_steps=1000))  # fmt: skip
+    maze = antmaze.collect(root)
+    assert [a["agent"] for a in maze["agents"]] == ["oposm", "llp"]
+    checks = {c["claim"].split(" (")[0]: c for c in antmaze.verdicts("large", maze)}
+    llp = checks["OPOSM reaches goals more often than LLP on antmaze-large-navigate"]
+    # 200 of 250 against 15 of 50 (OGBench's protocol): the Newcombe interval is above 0
+    assert llp["verdict"] == HOLDS and llp["interval"][0] > 0
+    assert "LLP 30.0 [19.1, 43.8]" in llp["detail"]
+    assert "the paper's table 1 (antmaze-large-diverse): OPOSM 70.2 vs LLP 14.4" in llp["detail"]
+    even = tmp_path / "even"  # the same rate on both sides: inconclusive, never "fails"
+    _write(even, "runs/oposm/reports/deploy/report.json", _deploy("oposm", [3] * 5, n=10))
+    _write(even, "runs/llp/reports/deploy/report.json", _deploy("llp", [3] * 5, n=10))
+    checks = antmaze.verdicts("medium", antmaze.collect(even))
+    assert [c["verdict"] for c in checks if "than LLP" in c["claim"]] == [INCONCLUSIVE]
+
+
 def test_verdicts_are_inconclusive_near_the_best_published_and_absent_without_runs(tmp_path):
     root = tmp_path / "m"
     _write(root, "runs/oposm/reports/deploy/report.json", _deploy("oposm", [48] * 5))

@@ -130,7 +130,8 @@ def _stale(pipeline: str) -> list[str]:
     return problems
 
 
-FRESH = ("experiments/dvc.yaml",)  # locks whose every stage ran with today's params and code
+# locks whose every stage ran with today's params and code
+FRESH = ("experiments/dvc.yaml", "experiments/manipulation/dvc.yaml")
 RERUN = {  # stale locks, and how to make them fresh
     OGB: f"`uv run dvc repro {OGB}` and commit its dvc.lock and results/ogbench-point.* (its "
     "lock holds only the giant and giant-stitch5k stages run so far)",

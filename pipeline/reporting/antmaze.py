@@ -29,6 +29,9 @@ Verdicts, each with its rule of `pipeline.reporting.common`:
   training data): rule 2, `reproduces`, the paper's rate taken as `paper.EPISODES_MAZE2D` episodes
   (it states no count for the ant; the maze2d count, the lower end). The paper ran D4RL's
   antmaze-*-diverse data and its own goals: a reference, not the same benchmark.
+- "OPOSM reaches goals more often than LLP" (the paper's table 1; our LLP on the same tasks,
+  OGBench's protocol): rule 1, `versus`; the paper's LLP rows (`pipeline.evaluation.paper_ant`)
+  beside it.
 - Figure 5, "OPOSM keeps more of its success under mass changes than the expert": rule 5,
   `versus` on each agent's success pooled over the perturbed factors (`off_nominal`).
 """
@@ -40,7 +43,7 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.errors import UserError
-from pipeline.evaluation import paper
+from pipeline.evaluation import paper, paper_ant
 from pipeline.reporting.common import (
     FAILS,
     HOLDS,
@@ -169,8 +172,12 @@ def collect(root: Path) -> dict[str, Any]:
 # --- verdicts -----------------------------------------------------------------------------------
 
 
+def _agent(maze: Mapping[str, Any], name: str) -> dict[str, Any] | None:
+    return next((a for a in maze["agents"] if a["agent"] == name), None)
+
+
 def _oposm(maze: Mapping[str, Any]) -> dict[str, Any] | None:
-    return next((a for a in maze["agents"] if a["agent"] == "oposm"), None)
+    return _agent(maze, "oposm")
 
 
 def verdicts(name: str, maze: Mapping[str, Any]) -> list[dict[str, Any]]:
@@ -199,6 +206,20 @@ def verdicts(name: str, maze: Mapping[str, Any]) -> list[dict[str, Any]]:
                     f"{what}; the paper's protocol)", "verdict": word, "interval": interval,
                     "detail": f"OPOSM {percent(ours['rate'], *ours['ci95'])} vs the paper's "
                     f"{percent(mean)} (as {paper.EPISODES_MAZE2D} episodes)"})  # fmt: skip
+    llp = _agent(maze, "llp")
+    if oposm and llp:
+        a, b = oposm["tasks"][OVERALL]["ogbench"], llp["tasks"][OVERALL]["ogbench"]
+        word, interval = versus(a, b)
+        theirs, their_llp = paper.TABLE1.get(paper_name(name)), paper_ant.TABLE1_LLP.get(
+            paper_name(name))  # fmt: skip
+        theirs = (f"; the paper's table 1 ({paper_name(name)}): OPOSM "
+                  f"{percent(theirs['oposm'][0])} vs LLP {percent(their_llp[0])}"
+                  if theirs and their_llp else "")  # fmt: skip
+        out.append({"claim": f"OPOSM reaches goals more often than LLP on {ogbench_name(name)} "
+                    "(the paper's table 1; OGBench's protocol, the same tasks)", "verdict": word,
+                    "interval": interval,
+                    "detail": f"OPOSM {percent(a['rate'], *a['ci95'])} vs LLP "
+                    f"{percent(b['rate'], *b['ci95'])}{theirs}"})  # fmt: skip
     return out
 
 
