@@ -176,14 +176,10 @@ def _agent(maze: Mapping[str, Any], name: str) -> dict[str, Any] | None:
     return next((a for a in maze["agents"] if a["agent"] == name), None)
 
 
-def _oposm(maze: Mapping[str, Any]) -> dict[str, Any] | None:
-    return _agent(maze, "oposm")
-
-
 def verdicts(name: str, maze: Mapping[str, Any]) -> list[dict[str, Any]]:
     """Every claim this maze's runs can judge: its words, the verdict, the interval (points)."""
     out = []
-    oposm = _oposm(maze)
+    oposm = _agent(maze, "oposm")
     table = paper.OGBENCH.get(ogbench_name(name))
     if oposm and table:
         ours = oposm["tasks"][OVERALL]["ogbench"]
@@ -210,11 +206,11 @@ def verdicts(name: str, maze: Mapping[str, Any]) -> list[dict[str, Any]]:
     if oposm and llp:
         a, b = oposm["tasks"][OVERALL]["ogbench"], llp["tasks"][OVERALL]["ogbench"]
         word, interval = versus(a, b)
-        theirs, their_llp = paper.TABLE1.get(paper_name(name)), paper_ant.TABLE1_LLP.get(
-            paper_name(name))  # fmt: skip
+        their_oposm = paper.TABLE1.get(paper_name(name))
+        their_llp = paper_ant.TABLE1_LLP.get(paper_name(name))
         theirs = (f"; the paper's table 1 ({paper_name(name)}): OPOSM "
-                  f"{percent(theirs['oposm'][0])} vs LLP {percent(their_llp[0])}"
-                  if theirs and their_llp else "")  # fmt: skip
+                  f"{percent(their_oposm['oposm'][0])} vs LLP {percent(their_llp[0])}"
+                  if their_oposm and their_llp else "")  # fmt: skip
         out.append({"claim": f"OPOSM reaches goals more often than LLP on {ogbench_name(name)} "
                     "(the paper's table 1; OGBench's protocol, the same tasks)", "verdict": word,
                     "interval": interval,
