@@ -1,6 +1,7 @@
 """results/antmaze.md + .json: OPOSM on OGBench's ant mazes, beside OGBench's published table and
 the paper's tables 1 and 4 (and figure 5 when a mass sweep ran), on `pipeline.reporting.common`'s
-format, verdict rules and stamp, with the published numbers of `pipeline.evaluation.paper`.
+format, verdict rules and stamp, with the published numbers of `pipeline.evaluation.paper` and
+`pipeline.evaluation.paper_ant`.
 
 One data root per maze (`experiments/antmaze/dvc.yaml`: `data/experiments/antmaze/<maze>/`): the
 data (ingest, segment), training, validation (the ladder's skill fidelity and prior-skill open
@@ -69,6 +70,7 @@ OVERALL = "ogbench"
 OGBENCH_STEPS = 1000  # OGBench's episode limit on its ant mazes
 MASS_RUN = "mass"  # runs named mass<factor> (`deploy.mass_scale`): the figure-5 sweep
 AGENT_ORDER = ("oposm", "llp", "gcbc", "expert")  # the rows' order; other agents after
+OGBENCH = {**paper.OGBENCH, **paper_ant.OGBENCH}  # OGBench's published rows, giant's included
 
 
 def ogbench_name(maze: str) -> str:
@@ -180,7 +182,7 @@ def verdicts(name: str, maze: Mapping[str, Any]) -> list[dict[str, Any]]:
     """Every claim this maze's runs can judge: its words, the verdict, the interval (points)."""
     out = []
     oposm = _agent(maze, "oposm")
-    table = paper.OGBENCH.get(ogbench_name(name))
+    table = OGBENCH.get(ogbench_name(name))
     if oposm and table:
         ours = oposm["tasks"][OVERALL]["ogbench"]
         word, method, interval = above_every(ours, table, paper.OGBENCH_SEEDS)
@@ -356,7 +358,7 @@ def _as_rates(by_factor: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def _published_line(name: str) -> str:
-    table = paper.OGBENCH.get(ogbench_name(name))
+    table = OGBENCH.get(ogbench_name(name))
     parts = []
     if table:
         parts.append(
@@ -522,7 +524,7 @@ def page(
         maze["verdicts"] = [*maze["verdicts"], *sweep["verdicts"]]
     published = {
         ogbench_name(m): {k: [round(100 * a), round(100 * b)] for k, (a, b) in t.items()}
-        for m in MAZES if (t := paper.OGBENCH.get(ogbench_name(m)))
+        for m in MAZES if (t := OGBENCH.get(ogbench_name(m)))
     }  # fmt: skip
     return {
         "what": "OPOSM on OGBench's ant mazes, beside OGBench's published table and the paper's",
