@@ -3,8 +3,8 @@
 Experiment 2 (`em_vi` in experiments/params.yaml): per dataset (the plain maze, the maze with
 random pushes), method (em, vi) and seed, the run `<root>/runs/<method>-seed<seed>/` holds the
 validate report (the TAWM against real open-loop outcomes of prior skills) and the deploy report
-(OPOSM's success and optimism gap). Per-seed values are compared with `separated` (all seeds of
-one method beyond all of the other's), success rates pooled over seeds with Newcombe intervals.
+(OPOSM's success and optimism gap); `pipeline.reporting.em_vi` reads them, judges the paper's
+predictions once all seeds ran and draws the tables (the ant's table 3 uses it too).
 
 Experiment 4: each EM run keeps its best checkpoint by the posterior s_T NLL (published, deployed
 by experiment 2) and by the prior-marginal s_T NLL (`models/<name>/by/st_nll_prior/`), deployed
@@ -16,76 +16,11 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from pipeline.reporting.common import cell, pct, points, pooled, rate, read, separated, versus
+from pipeline.reporting import em_vi as runs_of
+from pipeline.reporting.common import cell, points, read, versus
 
-METHODS = ("em", "vi")
 MODEL = "models/pointmaze-medium"
-
-
-def _deploy_numbers(deploy: dict[str, Any]) -> dict[str, Any]:
-    oposm = deploy["by_agent"]["oposm"]
-    wins = sum(oposm[t]["successes"] for t in deploy["tasks"])
-    n = sum(oposm[t]["episodes"] for t in deploy["tasks"])
-    gaps = [g["distance_gap_m"]["mean"] for g in (oposm.get("optimism_gap") or {}).values()]
-    gaps = [g for g in gaps if g is not None]
-    return {"success": rate(wins, n), "optimism_gap_m": sum(gaps) / len(gaps) if gaps else None}
-
-
-def _run(root: Path) -> dict[str, Any] | None:
-    validate = read(root / "reports/validate/report.json")
-    deploy = read(root / "reports/deploy/report.json")
-    if validate is None or deploy is None:
-        return None
-    prior = validate["prior"]
-    first = prior["skills_1"]
-    horizons = sorted(prior, key=lambda k: int(k.removeprefix("skills_")))
-    return {
-        "tawm_error_by_skills": [prior[k]["tawm_error_mean"] for k in horizons],
-        "tawm_nll_1": first["tawm_nll"],
-        "tawm_within_1sigma_1": first["tawm_within_1sigma"],
-        "tawm_error_1": first["tawm_error_mean"],
-        **_deploy_numbers(deploy),
-    }
-
-
-def _pooled(runs: dict[str, dict[str, Any]]) -> dict[str, Any]:
-    return pooled([r["success"] for r in runs.values()])
-
-
-def _values(runs: dict[str, dict[str, Any]], key: str) -> list[float]:
-    return [r[key] for r in runs.values() if r[key] is not None]
-
-
-def _rounded(values: list[float]) -> list[float]:
-    return [round(v, 3) for v in values]
-
-
-def _em_vi_claims(tag: str, em: dict, vi: dict) -> list[dict[str, Any]]:
-    """The paper's predictions (§2.1, appendix B, table 3) on one dataset, all seeds done."""
-    claims = []
-    for claim, key, higher_for in (
-        ("VI's TAWM is overconfident: fewer real outcomes within 1 sigma than EM's",
-         "tawm_within_1sigma_1", "em"),
-        ("VI's TAWM gives real outcomes a higher NLL than EM's", "tawm_nll_1", "vi"),
-        ("VI's plans are more optimistic than EM's (larger optimism gap)", "optimism_gap_m", "vi"),
-    ):  # fmt: skip
-        a, b = (_values(em, key), _values(vi, key))
-        if not a or not b:
-            continue
-        verdict = separated(a, b) if higher_for == "em" else separated(b, a)
-        claims.append({
-            "claim": f"On the {tag} maze, {claim} (§2.1, table 3)",
-            "verdict": verdict,
-            "numbers": f"per seed EM {_rounded(a)}, VI {_rounded(b)}",
-        })  # fmt: skip
-    verdict, interval = versus(_pooled(em), _pooled(vi))
-    claims.append({
-        "claim": f"On the {tag} maze, OPOSM with EM reaches goals more often than with VI",
-        "verdict": verdict,
-        "numbers": f"EM {cell(_pooled(em))} vs VI {cell(_pooled(vi))} % (seeds pooled); "
-        f"difference {points(interval)} points",
-    })  # fmt: skip
-    return claims
+em_vi_tables = runs_of.tables  # the results page's name for it
 
 
 def em_vi(exp: dict[str, Any], repo: Path) -> tuple[dict[str, Any], list[dict[str, Any]], int]:
@@ -95,22 +30,22 @@ def em_vi(exp: dict[str, Any], repo: Path) -> tuple[dict[str, Any], list[dict[st
     if not cfg:
         return {}, [], 0
     table: dict[str, Any] = {}
-    claims: list[dict[str, Any]] = []
+    found_claims: list[dict[str, Any]] = []
     done = 0
     for dataset in cfg["datasets"]:
         runs = {}
-        for method in METHODS:
+        for method in runs_of.METHODS:
             found = {}
             for seed in cfg["seeds"]:
-                run = _run(repo / dataset["root"] / f"runs/{method}-seed{seed}")
+                run = runs_of.run_numbers(repo / dataset["root"] / f"runs/{method}-seed{seed}")
                 if run is not None:
                     found[str(seed)] = run
             runs[method] = found
             done += len(found)
         table[dataset["tag"]] = runs
-        if all(len(runs[m]) == len(cfg["seeds"]) >= 3 for m in METHODS):
-            claims += _em_vi_claims(dataset["tag"], runs["em"], runs["vi"])
-    return table, claims, done
+        if all(len(runs[m]) == len(cfg["seeds"]) >= runs_of.MIN_SEEDS for m in runs_of.METHODS):
+            found_claims += runs_of.claims(dataset["tag"], runs["em"], runs["vi"])
+    return table, found_claims, done
 
 
 def _checkpoint_step(model_dir: Path) -> int | None:
@@ -138,13 +73,13 @@ def selection(exp: dict[str, Any], repo: Path) -> tuple[dict[str, Any], list[dic
             rows[str(seed)] = {
                 "step_by_st_nll": _checkpoint_step(by / "st_nll"),
                 "step_by_st_nll_prior": _checkpoint_step(by / "st_nll_prior"),
-                "by_st_nll": _deploy_numbers(posterior),
-                "by_st_nll_prior": _deploy_numbers(prior),
+                "by_st_nll": runs_of.deploy_numbers(posterior),
+                "by_st_nll_prior": runs_of.deploy_numbers(prior),
             }
         table[dataset["tag"]] = rows
         if len(rows) == len(cfg["seeds"]) >= 3:
-            prior_pool = _pooled({k: r["by_st_nll_prior"] for k, r in rows.items()})
-            post_pool = _pooled({k: r["by_st_nll"] for k, r in rows.items()})
+            prior_pool = runs_of.pooled_success({k: r["by_st_nll_prior"] for k, r in rows.items()})
+            post_pool = runs_of.pooled_success({k: r["by_st_nll"] for k, r in rows.items()})
             verdict, interval = versus(prior_pool, post_pool)
             same = sum(r["step_by_st_nll"] == r["step_by_st_nll_prior"] for r in rows.values())
             claims.append({
@@ -157,36 +92,6 @@ def selection(exp: dict[str, Any], repo: Path) -> tuple[dict[str, Any], list[dic
                 f"difference {points(interval)} points",
             })  # fmt: skip
     return table, claims
-
-
-def _gap(value: float | None) -> str:
-    return "–" if value is None else f"{value:+.3f}"
-
-
-def em_vi_tables(table: dict[str, Any]) -> list[str]:
-    """Per run, then pooled per dataset and method."""
-    rows = [
-        "| data | method | seed | NLL, 1 skill | within 1 sigma | error (m) | success | gap (m) |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    pooled = ["| data | method | seeds | success, pooled | mean gap (m) |", "|---|---|---|---|---|"]
-    for tag, methods in table.items():
-        for method, runs in methods.items():
-            for seed, r in runs.items():
-                rows.append(
-                    f"| {tag} | {method} | {seed} | {r['tawm_nll_1']:.3f} | "
-                    f"{pct(r['tawm_within_1sigma_1'])} | {r['tawm_error_1']:.3f} | "
-                    f"{cell(r['success'])} | {_gap(r['optimism_gap_m'])} |"
-                )
-            if runs:
-                gaps = _values(runs, "optimism_gap_m")
-                mean_gap = sum(gaps) / len(gaps) if gaps else None
-                pooled.append(
-                    f"| {tag} | {method} | {len(runs)} | {cell(_pooled(runs))} | {_gap(mean_gap)} |"
-                )
-    if len(rows) == 2:
-        return ["Not run yet."]
-    return [*rows, "", *pooled]
 
 
 def selection_tables(table: dict[str, Any]) -> list[str]:
@@ -217,7 +122,7 @@ def plot_rows(table: dict[str, Any]) -> dict[str, list[dict[str, Any]]]:
             if not runs:
                 continue
             columns[f"{tag}_{method}"] = [r["tawm_error_by_skills"] for r in runs.values()]
-            gap = _mean(_values(runs, "optimism_gap_m"))
+            gap = _mean(runs_of.values(runs, "optimism_gap_m"))
             if gap is not None:
                 gaps.append({"run": f"{tag} {method}", "optimism_gap_m": round(gap, 4)})
     depth = min((len(e) for runs in columns.values() for e in runs), default=0)
