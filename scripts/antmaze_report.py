@@ -8,9 +8,14 @@
     # a maze's mass sweep (paper figure 5), from the runs mass<...> of its data root:
     python scripts/antmaze_report.py figure5 large data/experiments/antmaze/large \
         --lock experiments/antmaze/dvc.lock --out results/antmaze/large-figure5.json
+    # a maze's table 3 (EM against naive VI), from the runs table3-<method>-seed<seed>:
+    python scripts/antmaze_report.py table3 large data/experiments/antmaze/large \
+        --e-kl closed_form --lock experiments/antmaze/dvc.lock \
+        --out results/antmaze/large-table3.json
     # the page, results/antmaze.md + .json, from the mazes' reports:
     python scripts/antmaze_report.py page results/antmaze/large.json [...] \
-        [--figure5 results/antmaze/large-figure5.json ...] --out results
+        [--figure5 results/antmaze/large-figure5.json ...] \
+        [--table3 results/antmaze/large-table3.json ...] --out results
 """
 
 from __future__ import annotations
@@ -50,6 +55,17 @@ def _figure5(args: argparse.Namespace) -> None:
     print(f"wrote {args.out}")
 
 
+def _table3(args: argparse.Namespace) -> None:
+    commands = [f"{PIPELINE}:table3"]
+    if args.lock:
+        ran = [c for c in lock_commands(args.lock)
+               if "--run table3-" in c and f"/{args.name} " in c]  # fmt: skip
+        commands += ["# which ran (dvc.lock):", *ran]
+    report = antmaze.table3_report(args.name, args.root, args.e_kl, commands, stamp(ROOT))
+    antmaze.write_maze(args.out, report)
+    print(f"wrote {args.out}")
+
+
 def _reports(paths: list[Path], stage: str) -> list[dict]:
     reports = []
     for path in paths:
@@ -63,8 +79,9 @@ def _reports(paths: list[Path], stage: str) -> list[dict]:
 def _page(args: argparse.Namespace) -> None:
     reports = _reports(args.reports, "maze@<maze>")
     sweeps = _reports(args.figure5, "figure5")
+    tables = _reports(args.table3, "table3")
     expert = antmaze.expert_info(read(ROOT / "experts" / "ant" / "actor.json") or {})
-    antmaze.write_page(args.out, antmaze.page(reports, expert, stamp(ROOT), sweeps))
+    antmaze.write_page(args.out, antmaze.page(reports, expert, stamp(ROOT), sweeps, tables))
     print(f"wrote {args.out / 'antmaze.md'} and antmaze.json")
 
 
@@ -82,13 +99,21 @@ def main(argv: list[str] | None = None) -> None:
     fig5.add_argument("root", type=Path, help="its data root (runs/mass<...>/)")
     fig5.add_argument("--lock", type=Path, help="the pipeline's dvc.lock: its commands listed")
     fig5.add_argument("--out", type=Path, required=True, help="the report's JSON file")
+    table3 = sub.add_parser("table3", help="a maze's table 3 (EM vs naive VI) from its root")
+    table3.add_argument("name", help=f"one of {', '.join(antmaze.MAZES)}")
+    table3.add_argument("root", type=Path, help="its data root (runs/table3-<method>-seed<seed>/)")
+    table3.add_argument("--e-kl", required=True, help="the E-step KL both methods ran (train.e_kl)")
+    table3.add_argument("--lock", type=Path, help="the pipeline's dvc.lock: its commands listed")
+    table3.add_argument("--out", type=Path, required=True, help="the report's JSON file")
     page = sub.add_parser("page", help="results/antmaze.md + .json from the mazes' reports")
     page.add_argument("reports", type=Path, nargs="+", help="results/antmaze/<maze>.json files")
     page.add_argument("--figure5", type=Path, nargs="*", default=[],
                       help="results/antmaze/<maze>-figure5.json files")  # fmt: skip
+    page.add_argument("--table3", type=Path, nargs="*", default=[],
+                      help="results/antmaze/<maze>-table3.json files")  # fmt: skip
     page.add_argument("--out", type=Path, default=ROOT / "results")
     args = parser.parse_args(argv)
-    {"maze": _maze, "figure5": _figure5, "page": _page}[args.command](args)
+    {"maze": _maze, "figure5": _figure5, "table3": _table3, "page": _page}[args.command](args)
 
 
 if __name__ == "__main__":

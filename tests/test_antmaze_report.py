@@ -212,3 +212,49 @@ def test_a_corrupt_report_is_a_one_line_error_naming_it(tmp_path):
     assert result.returncode == 1 and "Traceback" not in result.stderr
     assert result.stderr.strip().count("\n") == 0 and str(bad) in result.stderr
     assert not (tmp_path / "results").exists()  # nothing half-written
+
+
+def _table3_run(root: Path, method: str, seed: int, successes: int, within: float) -> None:
+    run = f"runs/table3-{method}-seed{seed}"
+    one = {"tawm_error_mean": 0.5, "tawm_nll": 3.0 - within, "tawm_within_1sigma": within}
+    two = {"tawm_error_mean": 0.9, "tawm_nll": 4.0, "tawm_within_1sigma": 0.5}
+    validate = {"prior": {"skills_1": one, "skills_2": two}}
+    _write(root, f"{run}/reports/validate/report.json", validate)
+    _write(root, f"{run}/reports/deploy/report.json",
+           _deploy("oposm", [successes] * 5, n=10, max_steps=1000))  # fmt: skip
+
+
+def test_table3_counts_each_episode_once_and_judges_only_matching_seeds(tmp_path):
+    root = _maze(tmp_path / "large")
+    for seed in (0, 1, 2):
+        _table3_run(root, "em", seed, successes=9, within=0.7 + seed / 100)
+        _table3_run(root, "vi", seed, successes=5, within=0.4 + seed / 100)
+    reports = tmp_path / "results/antmaze"
+    antmaze_report.main(["maze", "large", str(root), "--out", str(reports / "large.json")])
+    maze = json.loads((reports / "large.json").read_text())
+    assert not any(a["run"].startswith("table3-") for a in maze["agents"])  # not agent rows
+    table3 = reports / "large-table3.json"
+    antmaze_report.main(["table3", "large", str(root), "--e-kl", "closed_form",
+                         "--out", str(table3)])  # fmt: skip
+    saved = json.loads(table3.read_text())
+    assert saved["episodes_per_run"] == 50  # five tasks of 10, the pooled row not counted again
+    assert saved["runs"]["em"]["0"]["success"]["successes"] == 45
+    verdicts = {v["claim"].split(", ", 1)[1]: v["verdict"] for v in saved["verdicts"]}
+    assert verdicts["OPOSM with EM reaches goals more often than with VI"] == HOLDS
+    assert verdicts["VI's TAWM is overconfident: fewer real outcomes within 1 sigma than EM's "
+                    "(§2.1, table 3)"] == HOLDS  # fmt: skip
+    out = tmp_path / "results"
+    antmaze_report.main(["page", str(reports / "large.json"), "--table3", str(table3),
+                         "--out", str(out)])  # fmt: skip
+    page = json.loads((out / "antmaze.json").read_text())
+    assert page["mazes"]["large"]["table3"]["runs"]["vi"]["2"]["success"]["successes"] == 25
+    assert page["paper"]["antmaze-large-diverse"]["table3"]["vi"] == [0.583, 0.056]
+    assert "Table 3 on this maze" in (out / "antmaze.md").read_text()
+    # a seed that only one method ran: the numbers, no verdict
+    shutil.rmtree(root / "runs/table3-vi-seed2")
+    antmaze_report.main(["table3", "large", str(root), "--e-kl", "closed_form",
+                         "--out", str(table3)])  # fmt: skip
+    assert json.loads(table3.read_text())["verdicts"] == []
+    with pytest.raises(UserError, match="no table3-"):
+        antmaze_report.main(["table3", "large", str(tmp_path / "empty"), "--e-kl", "sampled",
+                             "--out", str(table3)])  # fmt: skip

@@ -1,9 +1,10 @@
 """Published ant-maze numbers that `pipeline.evaluation.paper` does not hold: the paper's LLP rows
 (low-level planning with a single-step model, its §4.2 baseline: its table 1, D4RL's fixed antmaze
 goal, and table 4, random goals; mean and the ± it printed, as fractions), which
-`pipeline.reporting.antmaze` puts beside our LLP on the same tasks as OPOSM, and OGBench's
-antmaze-giant-navigate row. Kept out of `pipeline.evaluation.paper` so that the pipelines depending
-on that module (the paper's experiments, the manipulation datasets') keep valid locks.
+`pipeline.reporting.antmaze` puts beside our LLP on the same tasks as OPOSM; its table 3 (EM
+against naive VI) on the ant; and OGBench's antmaze-giant-navigate row. Kept out of
+`pipeline.evaluation.paper` so that the pipelines depending on that module (the paper's
+experiments, the manipulation datasets') keep valid locks.
 """
 
 from __future__ import annotations
@@ -20,6 +21,12 @@ TABLE1_LLP = {
 TABLE4_LLP = {
     "antmaze-medium-diverse": (0.328, 0.0582),
     "antmaze-large-diverse": (0.30, 0.0568),
+}
+
+# Table 3: EM against naive VI (success, mean ± as printed), the antmaze rows.
+TABLE3 = {
+    "antmaze-medium-diverse": {"em": (0.7829, 0.0432), "vi": (0.744, 0.044)},
+    "antmaze-large-diverse": {"em": (0.702, 0.046), "vi": (0.583, 0.056)},
 }
 
 # OGBench's paper (Park et al., ICLR 2025), its table of state-based locomotion results, the

@@ -7,14 +7,17 @@ One data root per maze (`experiments/antmaze/dvc.yaml`: `data/experiments/antmaz
 data (ingest, segment), training, validation (the ladder's skill fidelity and prior-skill open
 loop), and deploy runs under `runs/<run>/`: one per agent on OGBench's five tasks, one on goals
 from the training data (`random_goal`, the development metric), and runs named `mass<...>`
-(figure 5: `deploy.mass_scale`).
+(figure 5: `deploy.mass_scale`) and `table3-<method>-seed<seed>` (table 3: EM against naive
+VI, each run trained, validated and deployed on its own).
 
 Two steps, so that a maze's report outlives its data root (DVC's cache is local: a maze run
 on another day or machine keeps its report in git): stage `maze@<maze>` writes the maze's report,
 `results/antmaze/<maze>.json` (`maze_report`), from its data root; stage `figure5` writes the mass
 sweep's, `results/antmaze/<maze>-figure5.json` (`figure5_report`), from the same root's mass runs
-alone (its own stage: a maze without a sweep has no such runs to depend on); stage `report` writes
-the page, `results/antmaze.md` and `.json` (`page`), from every maze's and sweep's report.
+alone (its own stage: a maze without a sweep has no such runs to depend on); stage `table3` writes
+`results/antmaze/<maze>-table3.json` (`table3_report`) from its table3-* runs alike; stage
+`report` writes the page, `results/antmaze.md` and `.json` (`page`), from every maze's, sweep's
+and table 3's report.
 
 Two protocols from one run. The deploys run the paper code's episodes (`deploy.max_steps: 2000`,
 success when the ant comes within 0.5 of the goal); OGBench's protocol (1000 steps, 0.5) is the
@@ -35,6 +38,9 @@ Verdicts, each with its rule of `pipeline.reporting.common`:
   beside it.
 - Figure 5, "OPOSM keeps more of its success under mass changes than the expert": rule 5,
   `versus` on each agent's success pooled over the perturbed factors (`off_nominal`).
+- Table 3, EM against naive VI: `pipeline.reporting.em_vi` (rule 4, `separated`, on the TAWM's
+  per-seed calibration and the optimism gap; rule 1, `versus`, on success pooled over seeds),
+  judged once both methods ran the same seeds, at least `em_vi.MIN_SEEDS` each.
 """
 
 from __future__ import annotations
@@ -45,6 +51,7 @@ from typing import Any
 
 from pipeline.errors import UserError
 from pipeline.evaluation import paper, paper_ant
+from pipeline.reporting import em_vi
 from pipeline.reporting.common import (
     FAILS,
     HOLDS,
@@ -69,6 +76,7 @@ TASKS = [f"ogbench-task{i}" for i in range(1, 6)]
 OVERALL = "ogbench"
 OGBENCH_STEPS = 1000  # OGBench's episode limit on its ant mazes
 MASS_RUN = "mass"  # runs named mass<factor> (`deploy.mass_scale`): the figure-5 sweep
+TABLE3_RUN = "table3-"  # runs table3-<method>-seed<seed> (stages em_vi_*): table 3, EM vs VI
 AGENT_ORDER = ("oposm", "llp", "gcbc", "expert")  # the rows' order; other agents after
 OGBENCH = {**paper.OGBENCH, **paper_ant.OGBENCH}  # OGBench's published rows, giant's included
 
@@ -113,7 +121,7 @@ def _agents(runs: list[tuple[str, dict[str, Any]]]) -> list[dict[str, Any]]:
     # a run named after its agent (runs/oposm/) first: that agent's row; others after, by name
     named_first = sorted(runs, key=lambda r: (r[0] not in r[1].get("by_agent", {}), r[0]))
     for run, report in named_first:
-        if run.startswith(MASS_RUN) or OVERALL not in report.get("tasks", []):
+        if run.startswith((MASS_RUN, TABLE3_RUN)) or OVERALL not in report.get("tasks", []):
             continue
         for agent, by_task in report["by_agent"].items():
             name = agent if agent not in seen else f"{agent} (run {run})"
@@ -377,6 +385,30 @@ def _published_line(name: str) -> str:
 _WORDS = {HOLDS: "holds", FAILS: "does not hold", INCONCLUSIVE: "inconclusive"}
 
 
+def _table3_lines(name: str, table3: Mapping[str, Any]) -> list[str]:
+    runs = table3["runs"]
+    seeds = sorted({seed for by_seed in runs.values() for seed in by_seed}, key=int)
+    published = paper_ant.TABLE3.get(paper_name(name))
+    theirs = (f" The paper's table 3 ({paper_name(name)}, its goals and protocol): EM "
+              f"{mean_std(*published['em'], digits=1)}, naive VI "
+              f"{mean_std(*published['vi'], digits=1)}." if published else "")  # fmt: skip
+    lines = [f"Table 3 on this maze: EM against naive VI (`train.method`), seeds "
+             f"{', '.join(seeds) or 'none yet'}, the same data, recipe and E-step KL "
+             f"(`train.e_kl: {table3['e_kl']}`); each run validated (the TAWM against real "
+             "outcomes of one prior skill: its NLL, the share within 1 sigma, the x-y error) "
+             f"and deployed on OGBench's five tasks ({table3['episodes_per_run']} episodes per "
+             f"run, OGBench's protocol; success % with its 95 % Wilson interval; gap: the "
+             f"optimism gap in m).{theirs}", "",
+             *em_vi.tables({ogbench_name(name): runs})]  # fmt: skip
+    if not table3["verdicts"]:
+        lines += ["", f"No verdict yet: each method needs the same {em_vi.MIN_SEEDS} or more "
+                  "seeds."]  # fmt: skip
+    lines += ["", f"Table 3's report: `results/antmaze/{name}-table3.json`, "
+              f"{stamp_text(table3['stamp'])}. Its commands:", "", "```bash",
+              *table3.get("commands", []), "```"]  # fmt: skip
+    return lines
+
+
 def render(results: Mapping[str, Any]) -> str:
     expert = results["expert"]
     made = ("Made by `uv run dvc repro experiments/antmaze/dvc.yaml` (each maze's commands in "
@@ -394,8 +426,9 @@ def render(results: Mapping[str, Any]) -> str:
     if not results["mazes"]:
         lines.append("- None yet: no maze has a report.")
     for checks in results["verdicts"].values():
-        lines += [f"- {c['claim']}: **{_WORDS[c['verdict']]}**: {c['detail']}; difference "
-                  f"{points(c['interval'])} points." for c in checks]  # fmt: skip
+        lines += [f"- {c['claim']}: **{_WORDS[c['verdict']]}**: {c['detail']}"
+                  + (f"; difference {points(c['interval'])} points." if c.get("interval")
+                     else ".") for c in checks]  # fmt: skip
     lines += [
         "",
         "## Protocol",
@@ -440,6 +473,9 @@ def render(results: Mapping[str, Any]) -> str:
                       f"The sweep's report: `results/antmaze/{name}-figure5.json`, "
                       f"{stamp_text(fig5['stamp'])}. Its commands:", "", "```bash",
                       *fig5.get("commands", []), "```"]  # fmt: skip
+        table3 = maze.get("table3")
+        if table3:
+            lines += ["", *_table3_lines(name, table3)]
         lines += ["", _published_line(name), ""]
         lines += [f"This maze's report: `results/antmaze/{name}.json`, "
                   f"{stamp_text(maze['stamp'])}. Its commands:", "", "```bash",
@@ -505,11 +541,49 @@ def figure5_report(
             "verdicts": mass_verdicts(sweep), "commands": list(commands)}  # fmt: skip
 
 
+def table3_report(
+    name: str,
+    root: Path,
+    e_kl: str,
+    commands: list[str],
+    stamp: Mapping[str, Any],
+) -> dict[str, Any]:
+    """A maze's table 3 (stage `table3`, `results/antmaze/<maze>-table3.json`) from the runs
+    `table3-<method>-seed<seed>` of its data root: each finished run's numbers
+    (`em_vi.run_numbers`), and the paper's predictions once both methods ran the same seeds."""
+    if name not in MAZES:
+        raise UserError(f"maze {name!r} is not one of {MAZES}")
+    runs: dict[str, dict[str, Any]] = {method: {} for method in em_vi.METHODS}
+    episodes = set()
+    for method in em_vi.METHODS:
+        prefix = f"{TABLE3_RUN}{method}-seed"
+        for path in sorted((root / "runs").glob(f"{prefix}*")):
+            seed = path.name.removeprefix(prefix)
+            numbers = em_vi.run_numbers(path) if seed.isdigit() else None
+            if numbers is not None:
+                runs[method][seed] = numbers
+                episodes.add(numbers["success"]["episodes"])
+    if not any(runs.values()):
+        raise UserError(f"{root / 'runs'}: no {TABLE3_RUN}<method>-seed<seed>/ with validate and "
+                        "deploy reports; run the em_vi_* stages")  # fmt: skip
+    if len(episodes) > 1:
+        raise UserError(f"{root / 'runs'}: the {TABLE3_RUN}* runs deployed {sorted(episodes)} "
+                        "episodes; rerun them alike (em_vi.episodes)")  # fmt: skip
+    seeds = [set(runs[m]) for m in em_vi.METHODS]
+    judged = all(s == seeds[0] for s in seeds) and len(seeds[0]) >= em_vi.MIN_SEEDS
+    claims = em_vi.claims(f"{ogbench_name(name)} ant", runs["em"], runs["vi"]) if judged else []
+    verdicts = [{"claim": c["claim"], "verdict": c["verdict"], "interval": None,
+                 "detail": c["numbers"]} for c in claims]  # fmt: skip
+    return {"maze": name, "stamp": dict(stamp), "e_kl": e_kl, "episodes_per_run": episodes.pop(),
+            "runs": runs, "verdicts": verdicts, "commands": list(commands)}  # fmt: skip
+
+
 def page(
     reports: list[Mapping[str, Any]],
     expert: Mapping[str, Any],
     stamp: Mapping[str, Any],
     figure5: list[Mapping[str, Any]] = (),
+    table3: list[Mapping[str, Any]] = (),
 ) -> dict[str, Any]:
     """The page's JSON (stage `report`, `results/antmaze.json`) from the mazes' reports and
     their mass sweeps', in `MAZES`' order: the mazes, their verdicts, the flat runs, the
@@ -522,6 +596,13 @@ def page(
         maze = mazes[sweep["maze"]]
         maze["figure5"] = dict(sweep)
         maze["verdicts"] = [*maze["verdicts"], *sweep["verdicts"]]
+    for table in table3:
+        if table["maze"] not in mazes:
+            raise UserError(f"table 3 of {table['maze']} has no maze report beside it; "
+                            f"add results/antmaze/{table['maze']}.json")  # fmt: skip
+        maze = mazes[table["maze"]]
+        maze["table3"] = dict(table)
+        maze["verdicts"] = [*maze["verdicts"], *table["verdicts"]]
     published = {
         ogbench_name(m): {k: [round(100 * a), round(100 * b)] for k, (a, b) in t.items()}
         for m in MAZES if (t := OGBENCH.get(ogbench_name(m)))
@@ -536,9 +617,16 @@ def page(
         "published": published,
         "paper": {
             paper_name(m): {
-                f"table{n}": list(t[paper_name(m)]["oposm"])
-                for n, t in ((1, paper.TABLE1), (4, paper.TABLE4))
-                if paper_name(m) in t
+                **{
+                    f"table{n}": list(t[paper_name(m)]["oposm"])
+                    for n, t in ((1, paper.TABLE1), (4, paper.TABLE4))
+                    if paper_name(m) in t
+                },
+                **(
+                    {"table3": {k: list(v) for k, v in paper_ant.TABLE3[paper_name(m)].items()}}
+                    if paper_name(m) in paper_ant.TABLE3
+                    else {}
+                ),
             }
             for m in MAZES
         },  # fmt: skip

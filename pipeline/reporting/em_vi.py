@@ -18,13 +18,16 @@ from pipeline.reporting.common import cell, pct, points, pooled, rate, read, sep
 
 METHODS = ("em", "vi")
 MIN_SEEDS = 3  # per method, before a claim is judged
+OGBENCH_POOLED = "ogbench"  # a deploy's row of OGBench's five tasks together (`deploy.tasks`)
 
 
 def deploy_numbers(deploy: dict[str, Any]) -> dict[str, Any]:
     """OPOSM's success over every task of a deploy report, and its mean optimism gap (m)."""
     oposm = deploy["by_agent"]["oposm"]
-    wins = sum(oposm[t]["successes"] for t in deploy["tasks"])
-    n = sum(oposm[t]["episodes"] for t in deploy["tasks"])
+    # OGBench's task set comes with its five tasks pooled: count each episode once
+    tasks = [OGBENCH_POOLED] if OGBENCH_POOLED in deploy["tasks"] else deploy["tasks"]
+    wins = sum(oposm[t]["successes"] for t in tasks)
+    n = sum(oposm[t]["episodes"] for t in tasks)
     gaps = [g["distance_gap_m"]["mean"] for g in (oposm.get("optimism_gap") or {}).values()]
     gaps = [g for g in gaps if g is not None]
     return {"success": rate(wins, n), "optimism_gap_m": sum(gaps) / len(gaps) if gaps else None}
