@@ -250,6 +250,10 @@ def test_table3_counts_each_episode_once_and_judges_only_matching_seeds(tmp_path
     assert page["mazes"]["large"]["table3"]["runs"]["vi"]["2"]["success"]["successes"] == 25
     assert page["paper"]["antmaze-large-diverse"]["table3"]["vi"] == [0.583, 0.056]
     assert "Table 3 on this maze" in (out / "antmaze.md").read_text()
+    antmaze_report.main(["maze", "medium", str(root), "--out", str(reports / "medium.json")])
+    with pytest.raises(UserError, match="table 3 of large has no maze report"):
+        antmaze_report.main(["page", str(reports / "medium.json"), "--table3", str(table3),
+                             "--out", str(out)])  # fmt: skip
     # a seed that only one method ran: the numbers, no verdict
     shutil.rmtree(root / "runs/table3-vi-seed2")
     antmaze_report.main(["table3", "large", str(root), "--e-kl", "closed_form",

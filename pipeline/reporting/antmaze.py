@@ -589,20 +589,15 @@ def page(
     their mass sweeps', in `MAZES`' order: the mazes, their verdicts, the flat runs, the
     published numbers."""
     mazes = {r["maze"]: dict(r) for r in sorted(reports, key=lambda r: MAZES.index(r["maze"]))}
-    for sweep in figure5:
-        if sweep["maze"] not in mazes:
-            raise UserError(f"the mass sweep of {sweep['maze']} has no maze report beside it; "
-                            f"add results/antmaze/{sweep['maze']}.json")  # fmt: skip
-        maze = mazes[sweep["maze"]]
-        maze["figure5"] = dict(sweep)
-        maze["verdicts"] = [*maze["verdicts"], *sweep["verdicts"]]
-    for table in table3:
-        if table["maze"] not in mazes:
-            raise UserError(f"table 3 of {table['maze']} has no maze report beside it; "
-                            f"add results/antmaze/{table['maze']}.json")  # fmt: skip
-        maze = mazes[table["maze"]]
-        maze["table3"] = dict(table)
-        maze["verdicts"] = [*maze["verdicts"], *table["verdicts"]]
+    attached = (("figure5", "the mass sweep", figure5), ("table3", "table 3", table3))
+    for key, what, extras in attached:
+        for extra in extras:
+            if extra["maze"] not in mazes:
+                raise UserError(f"{what} of {extra['maze']} has no maze report beside it; "
+                                f"add results/antmaze/{extra['maze']}.json")  # fmt: skip
+            maze = mazes[extra["maze"]]
+            maze[key] = dict(extra)
+            maze["verdicts"] = [*maze["verdicts"], *extra["verdicts"]]
     published = {
         ogbench_name(m): {k: [round(100 * a), round(100 * b)] for k, (a, b) in t.items()}
         for m in MAZES if (t := OGBENCH.get(ogbench_name(m)))
