@@ -5,7 +5,9 @@
 # params: train.e_prior ema, float32) and `bfloat16` (the same in bfloat16; the earlier rows
 # named `ema`) on seeds 0-9, then `paper` (train.e_prior: current, the paper's and the previous
 # default) on seeds 0-4, then two probes on the paper's E-step, seeds 1 and 2: `censored`
-# (train.action_likelihood) and `layernorm` (train.policy_trunk: layernorm_silu). Two jobs at a
+# (train.action_likelihood) and `layernorm` (train.policy_trunk: layernorm_silu), then
+# `subgoals` on seeds 0-9: the default recipe's models deployed with the subgoal graph
+# (deploy.subgoals.enabled; trained first where missing). Two jobs at a
 # time; 6-11 min of training and 1-2 of deploying per run on an idle 2-core CPU. A run already
 # finished is skipped, and a killed one resumes where it stopped, so the same command continues
 # a sweep.
@@ -23,7 +25,11 @@ declare -A RECIPES=(
   [paper]="-S train.e_prior=current"
   [censored]="-S train.e_prior=current -S train.action_likelihood=censored"
   [layernorm]="-S train.e_prior=current -S train.policy_trunk=layernorm_silu"
+  [subgoals]="-S deploy.subgoals.enabled=true"
 )
+# Recipes that only deploy differently: they deploy the model of the recipe named here (trained
+# first if it is missing), and their row repeats that training's numbers.
+declare -A DEPLOYS_MODEL_OF=([subgoals]=default)
 report_only=false
 seeds=""
 parallel=2
@@ -50,11 +56,29 @@ for recipe in default bfloat16; do
 done
 for seed in 0 1 2 3 4; do jobs+=("paper $seed"); done
 for recipe in censored layernorm; do jobs+=("$recipe 1" "$recipe 2"); done
+for seed in 0 1 2 3 4 5 6 7 8 9; do jobs+=("subgoals $seed"); done
 
 run_one() {  # recipe seed
   local run="stability-$1-s$2" overrides
   read -ra overrides <<< "${RECIPES[$1]}"
   local common=(-S train.seed="$2" -S train.threads=1 "${overrides[@]}")
+  if [[ -v "DEPLOYS_MODEL_OF[$1]" ]]; then
+    local base="${DEPLOYS_MODEL_OF[$1]}" model
+    local trained="$runs/stability-$base-s$2"
+    local -a base_overrides
+    read -ra base_overrides <<< "${RECIPES[$base]}"
+    if [[ ! -f "$trained/metrics/train.json" ]]; then
+      uv run oposm train --run "stability-$base-s$2" -S train.seed="$2" -S train.threads=1 \
+        "${base_overrides[@]}" > "$runs/stability-$base-s$2.log" 2>&1
+    fi
+    model=$(ls -d "$trained"/models/*/ | grep -v -- '-\(dynamics\|bc\|gcbc\)/$' | head -1)
+    if [[ ! -f "$runs/$run/metrics/deploy.json" ]]; then
+      uv run oposm deploy --run "$run" --model "$model" "${common[@]}" \
+        -S deploy.record_episodes=0 > "$runs/$run-deploy.log" 2>&1
+    fi
+    cp "$trained/metrics/train.json" "$runs/$run/metrics/train.json"
+    return
+  fi
   if [[ ! -f "$runs/$run/metrics/train.json" ]]; then
     uv run oposm train --run "$run" "${common[@]}" > "$runs/$run.log" 2>&1
   fi

@@ -115,7 +115,9 @@ def markdown(rows: list[dict], stamped: dict) -> str:
         "the previous default; its earlier runs, on another CPU and code version: "
         "`git show ad9de92:results/stability-cpu.md`); censored and layernorm = the paper's "
         "E-step with `train.action_likelihood: censored` or `train.policy_trunk: "
-        "layernorm_silu`.",
+        "layernorm_silu`; subgoals = the default recipe's models (the same training, so its "
+        "first columns repeat default's) deployed with the subgoal graph "
+        "(`deploy.subgoals.enabled: true`).",
         "",
         "| recipe | seed | published step | val s_T NLL, prior skills | diverged | random_goal, % "
         "(Wilson 95 %) | corners | stable |",
