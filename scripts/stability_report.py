@@ -117,7 +117,8 @@ def markdown(rows: list[dict], stamped: dict) -> str:
         "E-step with `train.action_likelihood: censored` or `train.policy_trunk: "
         "layernorm_silu`; subgoals = the default recipe's models (the same training, so its "
         "first columns repeat default's) deployed with the subgoal graph "
-        "(`deploy.subgoals.enabled: true`).",
+        "(`deploy.subgoals.enabled: true`), subgoals3 the same with waypoints up to 3 skills "
+        "ahead (`deploy.subgoals.reach: 3`).",
         "",
         "| recipe | seed | published step | val s_T NLL, prior skills | diverged | random_goal, % "
         "(Wilson 95 %) | corners | stable |",
