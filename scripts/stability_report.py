@@ -48,6 +48,17 @@ def earlier_rows(report: dict | None) -> dict[tuple[str, int], dict]:
     return out
 
 
+def _same_stamp(row: dict, earlier: dict | None) -> dict:
+    """`row` with `earlier`'s commit and machine when its numbers are `earlier`'s: the same run,
+    read again (a report rewritten later must not date it to its own commit)."""
+    if earlier is None:
+        return row
+    numbers = [k for k in row if k not in ("run", "commit", "machine")]
+    if all(earlier.get(k) == row[k] for k in numbers):
+        return row | {"commit": earlier.get("commit"), "machine": earlier.get("machine")}
+    return row
+
+
 def collect(
     runs: list[tuple[str, int, Path]], stamped: dict, earlier: dict | None = None
 ) -> list[dict]:
@@ -72,7 +83,7 @@ def collect(
                 if isinstance(result, dict) and "success" in result:
                     row |= {f"{task}_success": result["success"], f"{task}_episodes":
                             result["episodes"]}  # fmt: skip
-        rows.append(row)
+        rows.append(_same_stamp(row, kept.get((recipe, seed))))
     for recipe in {r["recipe"] for r in rows}:
         mine = [r for r in rows if r["recipe"] == recipe and "val_st_nll_prior" in r]
         median = statistics.median(r["val_st_nll_prior"] for r in mine) if mine else None

@@ -81,6 +81,32 @@ def test_rows_not_rerun_keep_their_earlier_commit_and_machine(tmp_path):
     assert "| bfloat16 | 1 of 1 | 1 | abc1234 | not recorded |" in text
 
 
+def test_a_run_read_again_keeps_the_commit_it_was_reported_at(tmp_path):
+    """A finished run whose folder is still here is read again by every later report: with the
+    same numbers it keeps its earlier row's commit and machine; with others it is a new run."""
+    same = _run_folder(tmp_path / "default-0", 5000, 1.4, 0.99)
+    other = _run_folder(tmp_path / "default-1", 4500, 1.5, 1.0)
+    first = {"commit": "abc1234", "stamp": {"machine": "cpu A"}, "runs": []}
+    for seed, (step, nll, ok) in enumerate([(5000, 1.4, 0.99), (4750, 1.6, 0.98)]):
+        first["runs"].append({
+            "recipe": "default", "seed": seed, "run": "x", "published_step": step,
+            "val_st_nll_prior": nll, "diverged": False, "random_goal_success": ok,
+            "random_goal_episodes": 100, "corners_success": 0.5, "corners_episodes": 10,
+        })  # fmt: skip
+    first["runs"][0] |= {"steps_per_s": None}
+    (tmp_path / "earlier.json").write_text(json.dumps(first))
+    out = tmp_path / "stability"
+    args = ["--run", f"default 0 {same}", "--run", f"default 1 {other}"]
+    subprocess.run(
+        [sys.executable, SCRIPT, "--out", out, "--keep", tmp_path / "earlier.json", *args],
+        check=True,
+        cwd=ROOT,
+    )
+    rows = {r["seed"]: r for r in json.loads(out.with_suffix(".json").read_text())["runs"]}
+    assert (rows[0]["commit"], rows[0]["machine"]) == ("abc1234", "cpu A")
+    assert rows[1]["commit"] != "abc1234" and rows[1]["published_step"] == 4500
+
+
 def test_the_sweep_script_refuses_a_bad_option_before_running_anything():
     """`scripts/stability_cpu.sh` checks its recipes and `--jobs` first: a typo costs nothing."""
     script = ROOT / "scripts/stability_cpu.sh"
