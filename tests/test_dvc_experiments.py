@@ -144,7 +144,8 @@ FRESH = (
 )
 RERUN = {  # stale locks, and how to make them fresh
     OGB: f"`uv run dvc repro {OGB}` and commit its dvc.lock and results/ogbench-point.* (its "
-    "lock holds only the giant and giant-stitch5k stages run so far)",
+    "lock holds medium's, large's, teleport's, medium-stitch's and large-stitch's stages, and "
+    "some of giant's, giant-stitch5k's and large-stitch5k's, so far)",
 }
 
 
