@@ -52,6 +52,18 @@ def test_stability_table_marks_each_run_against_its_recipe(tmp_path):
     assert first["commit"] == report["commit"] and first["machine"] == report["stamp"]["machine"]
 
 
+def _report_keeping(tmp_path: Path, earlier: dict, args: list[str]) -> Path:
+    """Run the report with `--keep` of the `earlier` report; returns the output stem."""
+    (tmp_path / "earlier.json").write_text(json.dumps(earlier))
+    out = tmp_path / "stability"
+    subprocess.run(
+        [sys.executable, SCRIPT, "--out", out, "--keep", tmp_path / "earlier.json", *args],
+        check=True,
+        cwd=ROOT,
+    )
+    return out
+
+
 def test_rows_not_rerun_keep_their_earlier_commit_and_machine(tmp_path):
     """`--keep`: a run whose folder is empty here keeps its row of the earlier report (a legacy
     recipe name renamed), with that report's commit; a rerun row replaces its earlier one."""
@@ -63,15 +75,9 @@ def test_rows_not_rerun_keep_their_earlier_commit_and_machine(tmp_path):
             {"recipe": "default", "seed": 0, "published_step": 100, "val_st_nll_prior": 9.0},
         ],
     }  # fmt: skip
-    (tmp_path / "earlier.json").write_text(json.dumps(earlier))
     fresh = _run_folder(tmp_path / "default-0", 5000, 1.4, 0.99)
-    out = tmp_path / "stability"
     args = ["--run", f"default 0 {fresh}", "--run", f"bfloat16 0 {tmp_path / 'gone'}"]
-    subprocess.run(
-        [sys.executable, SCRIPT, "--out", out, "--keep", tmp_path / "earlier.json", *args],
-        check=True,
-        cwd=ROOT,
-    )
+    out = _report_keeping(tmp_path, earlier, args)
     report = json.loads(out.with_suffix(".json").read_text())
     rows = {(r["recipe"], r["seed"]): r for r in report["runs"]}
     assert rows["bfloat16", 0]["commit"] == "abc1234" and rows["bfloat16", 0]["stable"] is True
@@ -93,15 +99,8 @@ def test_a_run_read_again_keeps_the_commit_it_was_reported_at(tmp_path):
             "val_st_nll_prior": nll, "diverged": False, "random_goal_success": ok,
             "random_goal_episodes": 100, "corners_success": 0.5, "corners_episodes": 10,
         })  # fmt: skip
-    first["runs"][0] |= {"steps_per_s": None}
-    (tmp_path / "earlier.json").write_text(json.dumps(first))
-    out = tmp_path / "stability"
     args = ["--run", f"default 0 {same}", "--run", f"default 1 {other}"]
-    subprocess.run(
-        [sys.executable, SCRIPT, "--out", out, "--keep", tmp_path / "earlier.json", *args],
-        check=True,
-        cwd=ROOT,
-    )
+    out = _report_keeping(tmp_path, first, args)
     rows = {r["seed"]: r for r in json.loads(out.with_suffix(".json").read_text())["runs"]}
     assert (rows[0]["commit"], rows[0]["machine"]) == ("abc1234", "cpu A")
     assert rows[1]["commit"] != "abc1234" and rows[1]["published_step"] == 4500
