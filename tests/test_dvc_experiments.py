@@ -141,12 +141,9 @@ FRESH = (
     "experiments/dvc.yaml",
     "experiments/antmaze/dvc.yaml",
     "experiments/manipulation/dvc.yaml",
+    OGB,
 )
-RERUN = {  # stale locks, and how to make them fresh
-    OGB: f"`uv run dvc repro {OGB}` and commit its dvc.lock and results/ogbench-point.* (its "
-    "lock holds medium's, large's, teleport's, medium-stitch's and large-stitch's stages, and "
-    "some of giant's, giant-stitch5k's and large-stitch5k's, so far)",
-}
+RERUN: dict[str, str] = {}  # stale locks, and how to make them fresh (none today)
 
 
 @pytest.mark.parametrize(
