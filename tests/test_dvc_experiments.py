@@ -136,30 +136,20 @@ def _stale(pipeline: str) -> list[str]:
     return problems
 
 
-# locks whose every stage ran with today's params and code (NOT_RUN_YET's aside)
-FRESH = (
+# every experiments pipeline: its committed lock ran with today's params and code (NOT_RUN_YET's
+# stages aside)
+PIPELINES = (
     "experiments/dvc.yaml",
     "experiments/antmaze/dvc.yaml",
     "experiments/manipulation/dvc.yaml",
     OGB,
 )
-RERUN: dict[str, str] = {}  # stale locks, and how to make them fresh (none today)
 
 
-@pytest.mark.parametrize(
-    "pipeline",
-    [
-        *FRESH,
-        *(
-            pytest.param(p, marks=pytest.mark.xfail(strict=True, reason=f"stale lock: run {why}"))
-            for p, why in RERUN.items()
-        ),
-    ],
-)
+@pytest.mark.parametrize("pipeline", PIPELINES)
 def test_committed_experiments_lock_matches_params_code_and_results(pipeline):
-    """A committed experiments lock records the params, code and results of its pipeline. Those
-    in RERUN are stale today (xfail, strict: it fails once the lock is fresh, and the entry must
-    move to FRESH)."""
+    """A committed experiments lock records the params, code and results of its pipeline: a
+    change to either without rerunning the stages it feeds fails here."""
     problems = _stale(pipeline)
     assert not problems, f"{pipeline}: " + "; ".join(problems[:20])
 
