@@ -4,7 +4,8 @@
     # one dataset's report, from its data root:
     python scripts/manipulation_report.py dataset cube-single-play \
         data/experiments/manipulation/cube-single-play \
-        --notes experiments/manipulation/notes.json --lock experiments/manipulation/dvc.lock \
+        --notes experiments/manipulation/notes/cube-single-play.json \
+        --lock experiments/manipulation/dvc.lock \
         --out results/manipulation/cube-single-play.json
     # the page, results/manipulation.md + .json, from the datasets' reports:
     python scripts/manipulation_report.py page results/manipulation/*.json --out results
@@ -25,14 +26,14 @@ PIPELINE = "uv run dvc repro experiments/manipulation/dvc.yaml"
 
 
 def _dataset(args: argparse.Namespace) -> None:
-    notes = (read(args.notes) if args.notes else None) or {}
+    notes = (read(args.notes) if args.notes else None) or []
+    if not isinstance(notes, list) or not all(isinstance(n, str) for n in notes):
+        raise UserError(f"{args.notes}: expected a JSON list of notes (strings) on {args.name}")
     commands = [f"{PIPELINE}:dataset@{args.name}"]
     if args.lock:
         ran = [c for c in lock_commands(args.lock) if c.endswith(f"@{args.name}")]
         commands += ["# which ran (dvc.lock):", *ran]
-    report = manipulation.dataset_report(
-        args.name, args.root, notes.get(args.name, []), commands, stamp(ROOT)
-    )
+    report = manipulation.dataset_report(args.name, args.root, notes, commands, stamp(ROOT))
     manipulation.write_dataset(args.out, report)
     print(f"wrote {args.out}")
 
@@ -54,7 +55,7 @@ def main(argv: list[str] | None = None) -> None:
     one = sub.add_parser("dataset", help="one dataset's report from its data root")
     one.add_argument("name", help=f"one of {', '.join(manipulation.DATASETS)}")
     one.add_argument("root", type=Path, help="its data root")
-    one.add_argument("--notes", type=Path, help="JSON: dataset -> a list of notes on its runs")
+    one.add_argument("--notes", type=Path, help="JSON: a list of notes on its runs")
     one.add_argument("--lock", type=Path, help="the pipeline's dvc.lock: its commands listed")
     one.add_argument("--out", type=Path, required=True, help="the report's JSON file")
     page = sub.add_parser("page", help="results/manipulation.md + .json from the datasets' reports")

@@ -64,7 +64,10 @@ def test_published_rows_hold_each_method_once_as_fractions():
 
 def test_collect_orders_agents_and_judges_each_claim(tmp_path):
     # OPOSM 45 of 50 per task (90 % [86, 93]) against GCIQL's 68 +- 6, LLP 20, GCBC 24
-    data = manipulation.collect(_dataset(tmp_path / "cs", [45] * 5, [20] * 5, [24] * 5))
+    root = _dataset(tmp_path / "cs", [45] * 5, [20] * 5, [24] * 5)
+    # a development run beside the pipeline's runs/<agent>/ stays out of the table
+    _write(root, "runs/dev-h3/reports/deploy/report.json", _deploy("oposm", [50] * 5))
+    data = manipulation.collect(root)
     assert [a["agent"] for a in data["agents"]] == ["oposm", "llp", "gcbc"]
     assert data["agents"][0]["tasks"]["ogbench"]["successes"] == 225
     checks = {c["claim"].split(" on ")[0]: c for c in manipulation.verdicts("cube-single-play",
@@ -84,13 +87,20 @@ def test_collect_orders_agents_and_judges_each_claim(tmp_path):
 def test_script_writes_each_datasets_report_then_the_page_from_them(tmp_path):
     """`dataset`: a dataset's report from its data root; `page`: results/manipulation.* from the
     reports alone (a data root gone since stays on the page)."""
-    notes = tmp_path / "notes.json"
-    notes.write_text(json.dumps({"scene-play": ["a note on the scene"]}))
+    notes = tmp_path / "notes/scene-play.json"  # one file per dataset: a list of notes
+    notes.parent.mkdir()
+    notes.write_text(json.dumps(["a note on the scene"]))
     reports = tmp_path / "results/manipulation"
     for name, s in (("scene-play", 30), ("cube-single-play", 45)):
         root = _dataset(tmp_path / name, [s] * 5, [10] * 5, [5] * 5)
-        manipulation_report.main(["dataset", name, str(root), "--notes", str(notes),
+        given = ["--notes", str(notes)] if name == "scene-play" else []
+        manipulation_report.main(["dataset", name, str(root), *given,
                                   "--out", str(reports / f"{name}.json")])  # fmt: skip
+        if name == "scene-play":  # the old shape (dataset -> notes) is refused, naming the file
+            notes.write_text(json.dumps({"scene-play": ["a note"]}))
+            with pytest.raises(UserError, match="scene-play.json: expected a JSON list"):
+                manipulation_report.main(["dataset", name, str(root), *given,
+                                          "--out", str(tmp_path / "x.json")])  # fmt: skip
         shutil.rmtree(root)
     out = tmp_path / "results"
     pages = [str(reports / "scene-play.json"), str(reports / "cube-single-play.json")]

@@ -51,7 +51,7 @@ from pipeline.reporting.common import write_page as write_results_page
 DATASETS = ("cube-single-play", "cube-double-play", "scene-play")
 TASKS = [f"ogbench-task{i}" for i in range(1, 6)]
 OVERALL = "ogbench"
-AGENTS = ("oposm", "llp", "gcbc", "oracle")  # the rows' order; other agents after
+AGENTS = ("oposm", "llp", "gcbc", "oracle")  # the pipeline's runs, runs/<agent>/, in row order
 ENV_IDS = {"cube-single-play": "cube-single-v0", "cube-double-play": "cube-double-v0",
            "scene-play": "scene-v0"}  # fmt: skip
 
@@ -60,29 +60,25 @@ ENV_IDS = {"cube-single-play": "cube-single-v0", "cube-double-play": "cube-doubl
 
 
 def _agents(root: Path) -> list[dict[str, Any]]:
-    """Every agent of every deploy run under `root/runs/` on OGBench's tasks: its `rate` per task
-    and pooled, its episode limit and mean final distance (in success tolerances)."""
-    rows, seen = [], set()
-    for path in sorted((root / "runs").glob("*/reports/deploy/report.json")):
-        report = read(path)
+    """The pipeline's deploy runs under `root/runs/<agent>/` (AGENTS; a development run beside
+    them is not read) on OGBench's tasks: each agent's `rate` per task and pooled, its episode
+    limit and mean final distance (in success tolerances)."""
+    rows = []
+    for run in AGENTS:
+        report = read(root / "runs" / run / "reports" / "deploy" / "report.json")
         if not report or OVERALL not in report.get("tasks", []):
             continue
-        run = path.parents[2].name
         for agent, by_task in report["by_agent"].items():
-            name = agent if agent not in seen else f"{agent} (run {run})"
-            seen.add(agent)
             overall = by_task[OVERALL]
             rows.append({
-                "agent": name,
+                "agent": agent if agent == run else f"{agent} (run {run})",
                 "run": run,
                 "episodes_per_task": report["episodes_per_task"],
                 "max_steps": report.get("max_steps"),
                 "final_distance_mean": overall.get("final_distance_mean"),
                 "tasks": {t: rate_of(by_task[t]) for t in [*TASKS, OVERALL] if t in by_task},
             })  # fmt: skip
-    order = {agent: i for i, agent in enumerate(AGENTS)}
-    return sorted(rows, key=lambda r: (order.get(r["agent"].split(" (run ")[0], len(order)),
-                                       r["agent"]))  # fmt: skip
+    return rows
 
 
 def collect(root: Path) -> dict[str, Any]:
