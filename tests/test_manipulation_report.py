@@ -96,11 +96,6 @@ def test_script_writes_each_datasets_report_then_the_page_from_them(tmp_path):
         given = ["--notes", str(notes)] if name == "scene-play" else []
         manipulation_report.main(["dataset", name, str(root), *given,
                                   "--out", str(reports / f"{name}.json")])  # fmt: skip
-        if name == "scene-play":  # the old shape (dataset -> notes) is refused, naming the file
-            notes.write_text(json.dumps({"scene-play": ["a note"]}))
-            with pytest.raises(UserError, match="scene-play.json: expected a JSON list"):
-                manipulation_report.main(["dataset", name, str(root), *given,
-                                          "--out", str(tmp_path / "x.json")])  # fmt: skip
         shutil.rmtree(root)
     out = tmp_path / "results"
     pages = [str(reports / "scene-play.json"), str(reports / "cube-single-play.json")]
@@ -122,6 +117,16 @@ def test_script_writes_each_datasets_report_then_the_page_from_them(tmp_path):
     with pytest.raises(UserError, match="does not exist"):
         manipulation_report.main(["page", str(reports / "cube-double-play.json"), "--out",
                                   str(out)])  # fmt: skip
+
+
+def test_notes_in_the_old_shape_are_refused_naming_the_file(tmp_path):
+    """One notes file per dataset holds a list; the old dataset -> notes mapping is an error."""
+    notes = tmp_path / "scene-play.json"
+    notes.write_text(json.dumps({"scene-play": ["a note"]}))
+    root = _dataset(tmp_path / "sc", [30] * 5, [10] * 5, [5] * 5)
+    with pytest.raises(UserError, match="scene-play.json: expected a JSON list"):
+        manipulation_report.main(["dataset", "scene-play", str(root), "--notes", str(notes),
+                                  "--out", str(tmp_path / "x.json")])  # fmt: skip
 
 
 def test_a_corrupt_report_is_a_one_line_error_naming_it(tmp_path):
