@@ -166,10 +166,25 @@ def test_runnable_others_sees_a_busy_process_and_not_this_ones_threads():
         busy.wait()
 
 
-@pytest.mark.parametrize("dtype", ["float32", "bfloat16"])
-def test_training_numbers_do_not_depend_on_the_thread_count(dtype):
+THREAD_DEPENDENT = pytest.mark.xfail(
+    strict=True,
+    reason="known bug (s28): at the main job's batch 100 and window 40, EM on 1 and 2 threads "
+    "differs within 2 steps, so `train.threads: auto` makes a model depend on the machine's load "
+    "(docs/performance.md, Threads)",
+)
+
+
+@pytest.mark.parametrize(
+    "dtype, batch, window",
+    [
+        ("float32", 64, 11),
+        ("bfloat16", 64, 11),
+        pytest.param("float32", 100, 40, marks=THREAD_DEPENDENT),
+    ],
+)
+def test_training_numbers_do_not_depend_on_the_thread_count(dtype, batch, window):
     """What lets `AutoThreads` switch mid-run: an EM step gives the same bits on 1 and 2 threads
-    (in either `train.dtype`)."""
+    (in either `train.dtype`); not yet at the main job's sizes (xfail, strict)."""
     from pipeline.model import SkillModel
     from pipeline.training.data import WindowBatch
 
@@ -182,8 +197,8 @@ def test_training_numbers_do_not_depend_on_the_thread_count(dtype):
             model = SkillModel(skill_model_config(4, 2, z_dim=16, hidden=128))
             updater = train_updater(model, lr_e=1e-3, lr_m=1e-3, e_prior="current", dtype=dtype)
             generator = torch.Generator().manual_seed(1)
-            states = torch.randn(64, 11, 4, generator=generator)
-            actions = torch.randn(64, 10, 2, generator=generator)
+            states = torch.randn(batch, window, 4, generator=generator)
+            actions = torch.randn(batch, window - 1, 2, generator=generator)
             for _ in range(2):
                 updater.step(WindowBatch(states, actions))
             results.append([p.detach().clone() for p in model.parameters()])
