@@ -404,14 +404,15 @@ _stage_command(
 )
 _stage_command(
     "validate",
-    """Check the world model against held-out open-loop rollouts in MuJoCo (paper §4.1, fig. 4).
+    """Check the world model against held-out data, and open loop in MuJoCo (paper §4.1, fig. 4).
 
-    From test-split start states restored exactly in the simulator, executes sequences of
-    1..validate.skills skills (from the prior, and inferred from the held-out data) open loop,
-    and compares where the agent ends with the TAWM's prediction and with the single-step model
-    (`oposm dynamics`) rolled forward. Writes data/reports/validate.json (errors, NLL,
-    calibration, wall crossings per horizon), data/reports/validate/*.csv (plots) and
-    data/recordings/validate.rrd (open with `rerun`).
+    On any dataset: from test-split start states, the skills of the next 1..validate.skills
+    recorded windows (inferred by the posterior) are chained through the TAWM and compared with
+    the recorded states, beside the single-step model (`oposm dynamics`) rolled over the recorded
+    actions and no model. With a simulator, also executes sequences of skills (from the prior,
+    and inferred) open loop from the restored states. Writes data/reports/validate/report.json
+    (errors, NLL, calibration per horizon), data/reports/validate/*.csv (plots) and
+    data/recordings/validate.rrd (`oposm view`). A robot's dataset: docs/robot.md.
     """,
     reads_model=True,
 )

@@ -1,20 +1,22 @@
 #!/usr/bin/env bash
-# The GPU checks of issue 16 in one go (< 10 min on one H100/H200): the CUDA tests, then
-# `bench/gpu_table.py` (planning at 1, 64 and 256 environments, eager, compiled + CUDA graphs and
-# the paper's procedure as reference; EM training at the default and the paper's sizes), printed
-# as one table with the issue's targets.
+# The GPU checks in one go (< 10 min on one H100 or H200): the CUDA tests, the fused rollout
+# kernel alone, then `bench/gpu_table.py` (planning at 1, 64 and 256 environments, eager,
+# compiled + CUDA graphs and the paper's procedure as reference; EM training at the default and
+# the paper's sizes), printed as one table with its targets (docs/performance.md).
+#
+# On any Linux machine with a CUDA GPU, from the repository's root, with the project installed
+# (`uv sync`; PYTHON names its interpreter, e.g. PYTHON=.venv/bin/python):
+#   bash bench/gpu.sh
+# It times the trained default model (`oposm segment` and `oposm train` first, or DATA= a folder
+# holding models/pointmaze-medium and segments/pointmaze-medium; LLP is timed only if its models
+# are there too). A machine without network whose python has torch with CUDA but not the rest of
+# the dependencies takes them as wheels: `bash bench/gpu_wheels.sh` on a machine with network,
+# then copy .whl/ into the repository there (bench/gpu_env.sh installs them).
+# Results land in OUT (default /tmp/oposm-gpu): gpu.json (written after every section),
+# tests.log, kernel.json, bench.log, table.txt.
 #
 # Dry run of the plumbing without a GPU (no compile, tiny sizes):
 #   python bench/gpu_table.py --device cpu --envs 4 --no-compile --no-triton --train-steps 3
-#
-# Where: the device tool's machine (no network; its python3 holds torch 2.11 + CUDA, pytest,
-# typer, safetensors, tqdm, ...). What it lacks travels as wheels in .whl/, fetched here first
-# by `bash bench/gpu_wheels.sh`. Then, from this repo's root:
-#   run(command="bash bench/gpu.sh", timeout_s=600,
-#       carry=[".whl", "data/models/pointmaze-medium", "data/segments/pointmaze-medium"])
-# (the trained default model and its segments: `oposm train` / `oposm segment` first; LLP is timed
-# only if its models travel too). Results also land in $OUT (gpu.json, written after every
-# section, tests.log, bench.log, table.txt) when the device tool sets OUT.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}

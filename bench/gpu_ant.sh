@@ -1,16 +1,19 @@
 #!/usr/bin/env bash
-# The ant chain of issue 19 in one prepared GPU run (< 10 min on one H100/H200): OGBench's
+# The ant chain in one GPU run (< 10 min on one H100 or H200 with 16 CPU cores): OGBench's
 # antmaze-medium-navigate recipe (PARAMS: another ant params file) with our expert (ingest,
-# EPISODES episodes, WORKERS processes),
-# segment, then EM training on CUDA with `train.cuda_graph` for MINUTES minutes. The trained
-# model and the training reports land in $OUT as ant.tgz.NN, the logs beside them; validate and
-# deploy run on the CPU afterwards, with the same params and `--data` at the unpacked folder.
+# EPISODES episodes, WORKERS processes), segment, then EM training on CUDA with
+# `train.cuda_graph` for MINUTES minutes, in DATA (default /tmp/oposm-ant). The trained model and
+# the training reports are also packed into OUT (default /tmp/oposm-gpu-ant) as ant.tgz.NN, the
+# logs beside them, so that the GPU machine can be let go: validate and deploy then run on any
+# CPU, with the same params and `--data` at the unpacked folder.
 #
-# Where: the device tool's machine (no network; torch with CUDA, accelerate, scipy, ... in its
-# image). What it lacks travels as wheels in .whl/: `bash bench/gpu_wheels.sh --ant` here first
-# (33 MB without gymnasium-robotics, which the ant chain does not import). Then, from this
-# repo's root:
-#   run(command="bash bench/gpu_ant.sh", timeout_s=600, carry=[".whl"])
+# On any Linux machine with a CUDA GPU, from the repository's root, with the project installed
+# (`uv sync`; PYTHON names its interpreter):
+#   bash bench/gpu_ant.sh
+# A machine without network whose python has torch with CUDA but not the rest takes the rest as
+# wheels: `bash bench/gpu_wheels.sh --ant` on a machine with network (33 MB, without
+# gymnasium-robotics, which the ant chain does not import), then copy .whl/ into the repository
+# there.
 # DEADLINE (epoch seconds) shortens the training so that the script ends by then.
 # Dry run without a GPU (tiny sizes, CPU): EPISODES=20 WORKERS=2 MINUTES=0.5 DEVICE=cpu \
 #   OUT=/tmp/ant-dry bash bench/gpu_ant.sh
@@ -58,9 +61,8 @@ if [ "$rc" -ne 0 ] && [ "$DEVICE" = cuda ]; then  # e.g. a failed capture: eager
     stage train_eager "$PY" cli.py train "${P[@]}" "${T[@]}" -S train.cuda_graph=false
     rc=$?
 fi
-# What comes back from the device tool is limited in file count and size: one archive of the
-# published model, the training metrics and curves, and segments.json, in 2.5 MB parts
-# (`cat ant.tgz.* | tar xz` here).
+# One archive of the published model, the training metrics and curves, and segments.json, in
+# 2.5 MB parts that any copy route takes (`cat ant.tgz.* | tar xz` to unpack).
 (cd "$DATA" && tar czf - models/*/model.safetensors models/*/config.json \
     reports/train/metrics.json reports/train/plots segments/*/segments.json 2>/dev/null) |
     split -b 2500k -d - "$OUT/ant.tgz."

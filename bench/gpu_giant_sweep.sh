@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Issue 37's planner sweep on pointmaze-giant-stitch in one prepared run (< 10 min on the device
-# tool's machine: one H100/H200, 16 CPU cores): OGBench's stitch recipe at OGBench's size (5000
+# The planner sweep on pointmaze-giant-stitch in one GPU run (< 10 min on one H100 or H200 with
+# 16 CPU cores): OGBench's stitch recipe at OGBench's size (5000
 # episodes of 201 steps, the `giant-stitch5k` root of experiments/ogbench/params.yaml), segment,
 # EM on CUDA (the variant's 5000 steps), then one deploy per planner setting, all at once (one
 # core each, plans on the GPU), on OGBench's five tasks with 2000-step episodes: success within
@@ -8,15 +8,16 @@
 # many failures only ran out of time. A development sweep (EPISODES per task, default 20), not a
 # results row: the chosen setting is then run by experiments/ogbench/dvc.yaml.
 #
-# Where: the device tool's machine; what its image lacks travels as wheels
-# (`bash bench/gpu_wheels.sh --ant`, then `run(command="bash bench/gpu_giant_sweep.sh",
-# carry=[".whl"])`). Its reports come back in $OUT as sweep.tgz (`tar xzf` here), one folder
-# per setting: reports/deploy/episodes.json and metrics.
-# rerun-sdk (a 166 MB wheel) does not fit the device tool's 64 MiB, and stages/deploy.py imports
-# it at module level although these deploys record nothing (`deploy.record_episodes=0`): STUB
-# names a folder put first on PYTHONPATH, e.g. one holding a stand-in `rerun` package whose every
-# attribute is an inert object (made by the run's command line, not part of the project).
-# DEPLOY_TIMEOUT (seconds, `timeout`'s 0 = none) stops the deploys so that the reports still come back.
+# On any Linux machine with a CUDA GPU, from the repository's root, with the project installed
+# (`uv sync`; PYTHON names its interpreter): `bash bench/gpu_giant_sweep.sh`; without network,
+# the wheels of `bash bench/gpu_wheels.sh --ant` (fetched elsewhere) copied to .whl/ first. The
+# reports are packed into OUT (default /tmp/oposm-gpu-sweep) as sweep.tgz, one folder per
+# setting: reports/deploy/episodes.json and metrics; the logs as logs.tgz.
+# stages/deploy.py imports rerun-sdk (a 166 MB wheel, not among gpu_wheels.sh's) at module level
+# although these deploys record nothing (`deploy.record_episodes=0`): where it is not installed,
+# STUB names a folder put first on PYTHONPATH, e.g. one holding a stand-in `rerun` package whose
+# every attribute is an inert object (not part of the project).
+# DEPLOY_TIMEOUT (seconds, `timeout`'s 0 = none) stops the deploys so that the reports are still packed.
 # Dry run without a GPU: DEVICE=cpu EPISODES_DATA=40 STEPS=20 EPISODES=1 MAX_STEPS=60 \
 #   SETTINGS=2 OUT=/tmp/sweep-dry bash bench/gpu_giant_sweep.sh
 set -uo pipefail
@@ -30,7 +31,7 @@ STEPS=${STEPS:-5000}
 EPISODES=${EPISODES:-20}
 MAX_STEPS=${MAX_STEPS:-2000}
 WORKERS=${WORKERS:-15}
-LOGS="$DATA/logs"  # every log, back as $OUT/logs.tgz (the device tool returns at most 8 files)
+LOGS="$DATA/logs"  # every log, packed as $OUT/logs.tgz: one file, however many deploys
 mkdir -p "$OUT" "$LOGS"
 source bench/gpu_env.sh
 [ -n "${STUB:-}" ] && export PYTHONPATH="$STUB:$PYTHONPATH"

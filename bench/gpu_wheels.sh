@@ -1,11 +1,12 @@
 #!/usr/bin/env bash
-# Fetch (here, with network) the wheels `bench/gpu.sh` needs on the GPU machine, whose image has
-# torch, numpy, pytest, typer, safetensors, tqdm, pyyaml but not these (the import closure of
-# bench/plan.py, bench/train.py and tests/test_gpu.py, less the image's packages). Versions: this
-# repo's uv.lock. They go to .whl/ (git-ignored through .git/info/exclude) and travel with
-# `carry=[".whl", ...]`; the device tool carries at most 64 MiB in all: these 38 MB, the default
-# model (2 MB), its segments (14 MB) and the tree (2 MB) fit. mujoco-studio (13 MB, the viewer) is
-# left out: `import mujoco` loads its renderer only if present.
+# For a GPU machine without network whose python has torch (with CUDA), numpy, pytest, typer,
+# safetensors, tqdm and pyyaml but not the rest: run this on a machine with network to fetch the
+# wheels that `bench/gpu.sh` needs besides those (the import closure of bench/plan.py,
+# bench/train.py and tests/test_gpu.py), at this repository's uv.lock versions, into .whl/
+# (git-ignored through .git/info/exclude; 38 MB). Copy .whl/ into the repository on the GPU
+# machine; bench/gpu_env.sh installs them there. mujoco-studio (13 MB, the viewer) is left out:
+# `import mujoco` loads its renderer only if present. A machine with network needs none of this:
+# `uv sync` installs everything.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 grep -qx '/.whl/' .git/info/exclude 2>/dev/null || echo /.whl/ >> "$(git rev-parse --git-common-dir)/info/exclude"

@@ -21,9 +21,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from pipeline.envs.expert import ExpertConfig
-from pipeline.envs.manipspace import MANIPSPACE_ENVS
-from pipeline.envs.maze import SUPPORTED_ENVS
-from pipeline.envs.ogbench import OGBENCH_MAZES
+from pipeline.envs.ids import MANIPSPACE_ENVS, OGBENCH_MAZES, SUPPORTED_ENVS
 from pipeline.errors import UserError
 
 
@@ -96,8 +94,8 @@ class DisturbanceParams(_Section):
 class OGBenchSourceParams(_Section):
     """`ingest.ogbench`: OGBench data (`ingest.source: ogbench`), generated with OGBench's
     recipe (sizes: `ingest.episodes` x `ingest.episode_steps`, `ingest.seed`; ant mazes with
-    our ant expert; manipulation with OGBench's scripted oracles) or, for the mazes, imported
-    from a downloaded `.npz` (`path`)."""
+    our ant expert; manipulation with OGBench's scripted oracles) or imported from a downloaded
+    `.npz` (`path`; manipulation: states restored from its qpos / qvel)."""
 
     env_id: Literal[(*OGBENCH_MAZES, *MANIPSPACE_ENVS)] = Field(  # type: ignore[valid-type]
         "pointmaze-medium-v0",

@@ -1,4 +1,9 @@
-"""Device and CPU-thread choices, made in one place for every stage."""
+"""Device and CPU-thread choices, made in one place for every stage.
+
+Thread counts are a speed choice, never a numerics one, where `pipeline.cpu_math` makes CPU
+sums thread-count independent (float32 with MKL); elsewhere `train.threads: auto` stays on one
+thread, so a model never depends on the machine's load.
+"""
 
 from __future__ import annotations
 
@@ -75,15 +80,21 @@ def _threads_for(others: int | None) -> int:
 
 
 def auto_threads(
-    setting: int | str | None, probe: Callable[[], int | None] | None = None
+    setting: int | str | None,
+    probe: Callable[[], int | None] | None = None,
+    fixed_numerics: bool = True,
 ) -> int | None:
     """`train.threads`: an int as is; None: torch's default; "auto": every core when no other
     thread is runnable now (`probe`, default `runnable_others`; an idle machine: 2 threads train
-    about 1.5x faster than 1), else one (torch's threads on cores that others use wait on each
+    about 1.4x faster than 1), else one (torch's threads on cores that others use wait on each
     other: 20x slower). Logged either way. `AutoThreads` keeps the choice right while a run goes
-    on."""
+    on. Where the thread count would change the numbers (`fixed_numerics` False, see
+    `numerics_follow_threads`), "auto" is one thread, so a model never depends on the load."""
     if setting != "auto":
         return setting
+    if not fixed_numerics:
+        log.info("torch threads: 1 (auto; with this dtype and build, threads change the bits)")
+        return 1
     others = (probe or runnable_others)()
     threads = _threads_for(others)
     log.info(
@@ -98,8 +109,9 @@ class AutoThreads:
 
     A choice made once goes stale: a run that took both cores on an idle machine ran 60x slower
     once another job started (9 s per EM step instead of 0.15). Switching needs the same answer
-    twice in a row, so one busy moment does not flip it. Torch's CPU matmuls split rows between
-    threads, so the numbers do not depend on the thread count (`tests/test_config.py`).
+    twice in a row, so one busy moment does not flip it. Switching is safe only where the
+    numbers do not depend on the thread count (float32 with MKL's strict mode,
+    `tests/test_config.py`): elsewhere (`fixed_numerics` False) "auto" stays on one thread.
     """
 
     def __init__(
@@ -107,7 +119,11 @@ class AutoThreads:
         setting: int | str | None,
         recheck_s: float = 10.0,
         probe: Callable[[], int | None] | None = None,
+        fixed_numerics: bool = True,
     ):
+        if setting == "auto" and not fixed_numerics:
+            log.info("torch threads: 1 (auto; with this dtype and build, threads change the bits)")
+            setting = 1
         self.setting, self.recheck_s = setting, recheck_s
         self.probe = probe or runnable_others
         self.switches = 0

@@ -87,6 +87,11 @@ class Paths:
         """A stage's detailed reports `data/reports/<stage>/` (dvclive files, CSVs, JSON)."""
         return self.root / "reports" / stage
 
+    def timings(self, stage: str) -> Path:
+        """A stage's wall-clock measurements `data/timings/<stage>.json`: beside its outputs,
+        never one of them (they differ on every run; `stages.report.split_timings`)."""
+        return self.root / "timings" / f"{stage}.json"
+
     def report(self, stage: str) -> Path:
         """A stage's detailed report `data/reports/<stage>/report.json`."""
         return self.live(stage) / "report.json"

@@ -20,7 +20,7 @@ from pipeline.model.checkpoint import save_policy
 from pipeline.paths import Paths
 from pipeline.segments import load_segments
 from pipeline.training.bc import fit_policy
-from stages.report import report_files, write_report
+from stages.report import report_files, split_timings, write_report
 
 log = logging.getLogger(__name__)
 
@@ -50,9 +50,8 @@ def fit_and_save(params: Params, paths: Paths, kind: str, cfg: PolicyParams) -> 
         policy, metrics = fit_policy(segments, cfg, device, goal_dims)
     extra = {"dataset": segments.info.name, "info": dataclasses.asdict(segments.info)}
     with paths.staged(files, folders) as out:  # the policy and its report together
-        save_policy(
-            policy, out.folder(paths.policy(name, kind)), kind, extra | {"metrics": metrics}
-        )
+        kept = split_timings(metrics)[0]  # the checkpoint's bytes: not its wall time
+        save_policy(policy, out.folder(paths.policy(name, kind)), kind, extra | {"metrics": kept})
         write_report(paths, kind, metrics | {"device": str(device)}, out)
     log.info(
         "%s policy: val NLL %.3f, action RMSE %.3f after %d steps (%.0f s) -> %s",

@@ -63,7 +63,7 @@ from pipeline.segments import Segments, load_segments
 from pipeline.viz.deploy import recording_name, write_episode_recording
 from pipeline.viz.manip import write_manip_episode_recording, write_manip_overview
 from pipeline.viz.overview import write_overview
-from stages.report import report_files, write_report
+from stages.report import report_files, split_timings, write_report, write_timings
 
 log = logging.getLogger(__name__)
 
@@ -403,6 +403,8 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
             report["distance_unit"] = GoalRule.of_spec(spec).unit
         if "oposm" in by_agent and "llp" in by_agent:
             report["oposm_vs_llp"] = compare_planners(report, "oposm", "llp")
-        out.write_json(paths.live("deploy") / "episodes.json", rows)
+        kept_rows, row_timings = split_timings(rows)  # each episode's planning seconds
+        out.write_json(paths.live("deploy") / "episodes.json", kept_rows)
         write_report(paths, "deploy", report, out)
+        write_timings(paths, "deploy-episodes", row_timings)
     return report

@@ -3,6 +3,11 @@
 The headline is the handful of numbers a person compares across runs (`dvc exp show`, `dvc
 metrics diff`): a small flat-ish JSON in `metrics/<stage>.json`, git-tracked so every
 experiment's commit carries it. Everything else stays in the detailed report.
+
+Wall-clock measurements (seconds, rates, planning latencies) differ on every run, and DVC hashes
+a stage's outputs: the same params and inputs must give the same bytes. So `write_report` moves
+them out of both files into `<data>/timings/<stage>.json` (`Paths.timings`), beside the outputs
+but not one of them; `oposm bench ...` is where speed is measured for comparison.
 """
 
 from __future__ import annotations
@@ -11,10 +16,51 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from pipeline.io import Staging
+from pipeline.io import Staging, write_json
 from pipeline.paths import Paths
 
 Report = dict[str, Any]
+
+
+# Keys whose values are wall-clock measurements, at any depth of a report (and `replan_s_*`).
+TIMING_KEYS = frozenset({
+    "seconds", "wall_s", "total_s", "steps_per_s", "windows_per_s", "generate_steps_per_s",
+    "sim_steps_per_s", "plans_per_s", "plan_seconds", "plan_seconds_per_episode",
+    "call_latency_s", "per_env_latency_s", "plan_s_p50", "plan_s_per_episode_mean",
+})  # fmt: skip
+
+
+def _is_timing(key: str) -> bool:
+    return key in TIMING_KEYS or key.startswith("replan_s_")
+
+
+def split_timings(value: Any) -> tuple[Any, Any]:
+    """`value` without its wall-clock measurements (`TIMING_KEYS`, at any depth of nested dicts
+    and lists), and those measurements alone in the same nesting (None where there are none)."""
+    if isinstance(value, list):
+        pairs = [split_timings(v) for v in value]
+        timings = [t for _, t in pairs]
+        return [k for k, _ in pairs], (timings if any(t is not None for t in timings) else None)
+    if not isinstance(value, dict):
+        return value, None
+    kept: dict[str, Any] = {}
+    timings: dict[str, Any] = {}
+    for key, item in value.items():
+        if _is_timing(key):
+            timings[key] = item
+            continue
+        kept[key], inner = split_timings(item)
+        if inner is not None:
+            timings[key] = inner
+    return kept, (timings or None)
+
+
+def write_timings(paths: Paths, stage: str, timings: Any) -> None:
+    """`timings` (what `split_timings` took out) to `<data>/timings/<stage>.json`, atomically;
+    never a stage output (its bytes differ on every run)."""
+    if timings:
+        paths.timings(stage).parent.mkdir(parents=True, exist_ok=True)
+        write_json(paths.timings(stage), timings)
 
 
 def _round(value: Any, digits: int = 4) -> Any:
@@ -36,8 +82,8 @@ def _segment(r: Report) -> Report:
 def _train(r: Report) -> Report:
     val = r.get("val", {})
     picked = ["best_val_st_nll", "best_val_st_nll_prior", "best_step", "steps", "diverged"]
-    picked += ["diverged_step", "wall_s"]
-    return _pick(r, [*picked, "steps_per_s"]) | {
+    picked += ["diverged_step"]
+    return _pick(r, picked) | {
         f"val_{k}": _round(val[k]) for k in ("st_nll", "st_error", "action_nll") if k in val
     }
 
@@ -77,17 +123,13 @@ def _deploy_agent(a: Report, tasks: list[str]) -> Report:
             f"success_within_{k}": _round(w["success_rate"])
             for k, w in t.get("within_steps", {}).items()
         }
-    latency = (a.get("planning") or {}).get("per_env_latency_s") or {}
-    return out | {"plan_s_p50": _round(latency.get("p50"), 6), "flops": a.get("flops_per_replan")}
+    return out | {"flops": a.get("flops_per_replan")}
 
 
 def _deploy(r: Report) -> Report:
-    """Per agent: success per task, replan time (one env's share) and FLOPs per replan."""
+    """Per agent: success per task and FLOPs per replan (its time: `oposm bench plan`)."""
     tasks = r.get("tasks", [])
-    out: Report = {a: _deploy_agent(r["by_agent"][a], tasks) for a in r.get("agents", [])}
-    if (c := r.get("oposm_vs_llp")) is not None:
-        out["llp_over_oposm_replan_s"] = _round(c["replan_s_p50"]["llp_over_oposm"])
-    return out | {"wall_s": _round(r.get("wall_s"))}
+    return {a: _deploy_agent(r["by_agent"][a], tasks) for a in r.get("agents", [])}
 
 
 HEADLINES: dict[str, Callable[[Report], Report]] = {
@@ -109,13 +151,16 @@ def report_files(paths: Paths, stage: str) -> list[Path]:
 
 def write_report(paths: Paths, stage: str, report: Report, out: Staging | None = None) -> None:
     """Write `report` to `data/reports/<stage>/report.json` and its headline to `metrics/`:
-    staged in `out` (published with the stage's other outputs), or both at once now."""
+    staged in `out` (published with the stage's other outputs), or both at once now; its
+    wall-clock measurements to `<data>/timings/<stage>.json` instead (`split_timings`)."""
     if out is None:
         with paths.staged(report_files(paths, stage)) as staging:
             write_report(paths, stage, report, staging)
         return
-    out.write_json(paths.report(stage), report)
-    out.write_json(paths.metrics(stage), HEADLINES[stage](report))
+    kept, timings = split_timings(report)
+    out.write_json(paths.report(stage), kept)
+    out.write_json(paths.metrics(stage), HEADLINES[stage](kept))
+    write_timings(paths, stage, timings)
 
 
 def write_headline(paths: Paths, stage: str, report: Report, out: Staging | None = None) -> None:
@@ -125,4 +170,4 @@ def write_headline(paths: Paths, stage: str, report: Report, out: Staging | None
         with paths.staged([paths.metrics(stage)]) as staging:
             write_headline(paths, stage, report, staging)
         return
-    out.write_json(paths.metrics(stage), HEADLINES[stage](report))
+    out.write_json(paths.metrics(stage), HEADLINES[stage](split_timings(report)[0]))

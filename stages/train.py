@@ -16,7 +16,9 @@ from pathlib import Path
 
 import torch
 
+from pipeline import cpu_math
 from pipeline.config import Params, TrainParams
+from pipeline.cpu_math import numerics_follow_threads
 from pipeline.devices import AutoThreads, resolve_device
 from pipeline.errors import UserError
 from pipeline.io import output_lock
@@ -36,7 +38,7 @@ from pipeline.training.loop import (
 )
 from pipeline.training.state import Progress, load_state, read_progress, save_state
 from pipeline.training.updaters import no_reduce, resolve_dtype, updater_for
-from stages.report import write_headline
+from stages.report import write_headline, write_timings
 
 log = logging.getLogger(__name__)
 
@@ -131,7 +133,11 @@ def run(params: Params, paths: Paths, progress_bar: bool = True) -> Progress:
     with contextlib.ExitStack() as stack:
         if accelerator.is_main_process:  # one writer per model folder
             stack.enter_context(output_lock(paths.model(name)))
-        threads = AutoThreads(cfg.threads if accelerator.device.type == "cpu" else None)
+        device_type = accelerator.device.type
+        threads = AutoThreads(
+            cfg.threads if device_type == "cpu" else None,
+            fixed_numerics=not numerics_follow_threads(device_type, dtype),
+        )
         stack.enter_context(threads)
         return _train(params, paths, segments, segments_dir, accelerator, progress_bar, threads)
 
@@ -186,10 +192,11 @@ def _train(
     }
 
     def log_metrics(step: int, metrics: dict[str, float]) -> None:
-        if live is not None:
+        if live is not None:  # wall-clock ones ("time/...") are not outputs: `write_timings`
             live.step = step
             for key, value in metrics.items():
-                live.log_metric(key, value)
+                if not key.startswith("time/"):
+                    live.log_metric(key, value)
             live.make_summary()
 
     def save_best(criterion: str, p: Progress, metrics: dict[str, float]) -> None:
@@ -242,15 +249,20 @@ def _train(
             },
             "diverged": progress.diverged_step is not None,
             "diverged_step": progress.diverged_step,
-            "wall_s": progress.elapsed_s,
-            "steps_per_s": progress.step / run_s,
-            "windows_per_s": progress.step * cfg.batch_size / run_s,
             "processes": world,
             "device": str(accelerator.device),
             "dtype": cfg.dtype,
+            "cpu_math": cpu_math.mode() if accelerator.device.type == "cpu" else None,
         }
         live.end()
         _publish(paths, name, cfg.select, best_dir, live_dir, live.summary)
+        write_timings(paths, "train", {
+            "wall_s": progress.elapsed_s,
+            "steps_per_s": progress.step / run_s,
+            "windows_per_s": progress.step * cfg.batch_size / run_s,
+            "torch_threads_at_end": torch.get_num_threads(),
+            "thread_switches": threads.switches,
+        })  # fmt: skip
     if progress.diverged_step is not None:
         log.warning(
             "this run diverged at step %d (metrics/train.json: diverged); the published model "

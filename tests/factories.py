@@ -161,10 +161,19 @@ def kill_an_ingest_while_it_writes(root, name: str):
         stderr=subprocess.DEVNULL,
     )
     demos = Path(root) / "data" / "demos"
-    deadline = time.monotonic() + 60
-    while not any(demos.glob(".tmp-*")) and time.monotonic() < deadline:
-        time.sleep(0.05)  # wait until it is writing
-    time.sleep(0.5)
+
+    def written(tmp: Path) -> int:
+        try:
+            return tmp.stat().st_size if tmp.is_file() else 0
+        except FileNotFoundError:  # renamed into place meanwhile
+            return 0
+
+    # Midway: a temporary holds data (not merely created), however long the start takes.
+    deadline = time.monotonic() + 120
+    while proc.poll() is None and time.monotonic() < deadline:
+        if any(written(tmp) > 0 for tmp in demos.glob(".tmp-*")):
+            break
+        time.sleep(0.05)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     assert any(demos.glob(".tmp-*")), "the run was killed before it started writing"

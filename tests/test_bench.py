@@ -1,6 +1,7 @@
 """The planning benchmark's reference (the paper's procedure, one environment at a time) and the
 matmul roofline: the reference optimizes the same objective as the batched planner."""
 
+import time
 from pathlib import Path
 
 import pytest
@@ -45,8 +46,22 @@ def test_reference_returns_its_plans_objective_and_matches_the_batched_planner()
     assert len(reference.plan(s0, goals, seed=0)) == 3
 
 
-def test_matmul_roofline_is_measured():
-    assert matmul_gflops(torch.device("cpu"), 64, 64, 64, seconds=0.05) > 0.1
+def test_matmul_roofline_is_the_products_flops_over_their_time():
+    """The GFLOP/s reported are the FLOPs torch's profiler counts in the products that were run
+    (less the 3 warm-up products) over a time that is at least the budget and at most the call's
+    wall time: a miscounted product (a lost factor 2) or a wrong clock falls outside."""
+    m, k, n, budget = 64, 48, 32, 0.05
+    with torch.profiler.profile(
+        activities=[torch.profiler.ProfilerActivity.CPU], with_flops=True, acc_events=True
+    ) as prof:
+        start = time.perf_counter()
+        got = matmul_gflops(torch.device("cpu"), m, k, n, seconds=budget)
+        wall = time.perf_counter() - start
+    counted = sum(e.flops for e in prof.key_averages() if e.key == "aten::mm")
+    per_product = 2 * m * k * n
+    assert counted % per_product == 0 and counted // per_product > 3
+    timed = counted - 3 * per_product
+    assert budget <= timed / (got * 1e9) <= wall
 
 
 ROOT = Path(__file__).resolve().parents[1]

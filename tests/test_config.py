@@ -1,3 +1,4 @@
+import os
 import time
 from pathlib import Path
 
@@ -166,45 +167,75 @@ def test_runnable_others_sees_a_busy_process_and_not_this_ones_threads():
         busy.wait()
 
 
-THREAD_DEPENDENT = pytest.mark.xfail(
-    strict=True,
-    reason="known bug (s28): at the main job's batch 100 and window 40, EM on 1 and 2 threads "
-    "differs within 2 steps, so `train.threads: auto` makes a model depend on the machine's load "
-    "(docs/performance.md, Threads)",
-)
-
-
-@pytest.mark.parametrize(
-    "dtype, batch, window",
-    [
-        ("float32", 64, 11),
-        ("bfloat16", 64, 11),
-        pytest.param("float32", 100, 40, marks=THREAD_DEPENDENT),
-    ],
-)
-def test_training_numbers_do_not_depend_on_the_thread_count(dtype, batch, window):
-    """What lets `AutoThreads` switch mid-run: an EM step gives the same bits on 1 and 2 threads
-    (in either `train.dtype`); not yet at the main job's sizes (xfail, strict)."""
+def _em_parameters_after_steps(threads: int, dtype: str, batch: int, window: int, hidden: int):
+    """The parameters after 2 EM steps from seed 0 on `threads` torch threads."""
     from pipeline.model import SkillModel
     from pipeline.training.data import WindowBatch
 
+    torch.set_num_threads(threads)
+    torch.manual_seed(0)
+    model = SkillModel(skill_model_config(4, 2, z_dim=16, hidden=hidden))
+    updater = train_updater(model, lr_e=1e-3, lr_m=1e-3, e_prior="current", dtype=dtype)
+    generator = torch.Generator().manual_seed(1)
+    states = torch.randn(batch, window, 4, generator=generator)
+    actions = torch.randn(batch, window - 1, 2, generator=generator)
+    for _ in range(2):
+        updater.step(WindowBatch(states, actions))
+    return [p.detach().clone() for p in model.parameters()]
+
+
+@pytest.mark.parametrize(
+    "dtype, batch, window, hidden",
+    [("float32", 64, 11, 128), ("float32", 100, 40, 128), ("float32", 100, 40, 256)],
+    ids=["small", "main-job", "paper-hidden"],
+)
+def test_training_numbers_do_not_depend_on_the_thread_count(dtype, batch, window, hidden):
+    """What makes `train.threads` a speed choice only: an EM step gives the same bits on 1, 2
+    and 3 threads, at the main job's sizes (batch 100 x window 40, where MKL's default splits
+    the weight gradients' sums between threads) and the paper's hidden size (`cpu_math`)."""
+    from pipeline import cpu_math
+
+    assert cpu_math.ensure().endswith("STRICT")
     previous = torch.get_num_threads()
-    results = []
     try:
-        for threads in (1, 2):
-            torch.set_num_threads(threads)
-            torch.manual_seed(0)
-            model = SkillModel(skill_model_config(4, 2, z_dim=16, hidden=128))
-            updater = train_updater(model, lr_e=1e-3, lr_m=1e-3, e_prior="current", dtype=dtype)
-            generator = torch.Generator().manual_seed(1)
-            states = torch.randn(batch, window, 4, generator=generator)
-            actions = torch.randn(batch, window - 1, 2, generator=generator)
-            for _ in range(2):
-                updater.step(WindowBatch(states, actions))
-            results.append([p.detach().clone() for p in model.parameters()])
+        first, *others = [
+            _em_parameters_after_steps(t, dtype, batch, window, hidden) for t in (1, 2, 3)
+        ]
     finally:
         torch.set_num_threads(previous)
-    assert all(torch.equal(a, b) for a, b in zip(*results, strict=True))
+    for other in others:
+        assert all(torch.equal(a, b) for a, b in zip(first, other, strict=True))
+
+
+def test_cpu_math_mode_is_strict_and_its_default_follows_the_cpu(tmp_path):
+    """pipeline/__init__.py starts MKL in a strict reproducible mode: AVX-512's branch on a CPU
+    that has it, AVX2's on one that has only that, MKL's own choice elsewhere."""
+    from pipeline import cpu_math
+
+    assert cpu_math.mode() == os.environ["MKL_CBWR"].upper()
+    cases = {"fpu avx2 avx512f avx512bw": "AVX512,STRICT", "fpu sse4_2 avx avx2 fma": "AVX2,STRICT",
+             "fpu sse2": "AUTO,STRICT"}  # fmt: skip
+    for flags, expected in cases.items():
+        (tmp_path / "cpuinfo").write_text(f"flags\t\t: {flags}\n")
+        assert cpu_math.default_mode(tmp_path / "cpuinfo") == expected
+    assert cpu_math.default_mode(tmp_path / "absent") == "AUTO,STRICT"
+
+
+def test_bfloat16_or_no_strict_mode_keeps_auto_threads_on_one():
+    """Where threads would change the bits (bfloat16's oneDNN kernels on CPU), `auto` is one
+    thread whatever the load; float32 on CPU and any GPU work follow the load."""
+    from pipeline import cpu_math, devices
+
+    assert cpu_math.numerics_follow_threads("cpu", "bfloat16")
+    assert not cpu_math.numerics_follow_threads("cpu", "float32")
+    assert not cpu_math.numerics_follow_threads("cuda", "bfloat16")
+    assert devices.auto_threads("auto", probe=lambda: 0, fixed_numerics=False) == 1
+    previous = torch.get_num_threads()
+    with devices.AutoThreads("auto", recheck_s=0.0, probe=lambda: 0, fixed_numerics=False) as t:
+        t.tick()
+        t.tick()
+        assert torch.get_num_threads() == 1 and t.switches == 0
+    assert torch.get_num_threads() == previous
 
 
 def test_auto_dtype_is_bfloat16_only_on_a_cpu_that_multiplies_it(tmp_path):

@@ -17,8 +17,12 @@ PACKAGES = ("pipeline", "stages")
 # the config defaults, tests/test_config.py); its imports are for validating names.
 # readback.py: the checks of files read back, which pass a valid file's values on unchanged or
 # refuse the file.
+# cpu_math.py: MKL's reproducibility mode, which pipeline/__init__.py sets for every module; like
+# the locked torch and MKL versions (uv.lock) it is the environment a lock was made in, and the
+# README names it, rather than one stage's code.
 NOT_RESULTS = {
     "pipeline/__init__.py",
+    "pipeline/cpu_math.py",
     "stages/__init__.py",
     "pipeline/errors.py",
     "pipeline/paths.py",
@@ -107,10 +111,16 @@ REEXPORTING = {
 
 def test_package_inits_hold_no_code():
     """A package's __init__ runs on every import of its modules: keep them docstring-only, so
-    a stage's code is the modules it names."""
+    a stage's code is the modules it names; pipeline/__init__.py only sets the CPU arithmetic
+    mode (`cpu_math`) before any matrix product."""
     for init in [*ROOT.glob("pipeline/**/__init__.py"), ROOT / "stages/__init__.py"]:
         rel = init.relative_to(ROOT).as_posix()
         if rel in REEXPORTING:
+            continue
+        if rel == "pipeline/__init__.py":
+            body = [n for n in ast.parse(init.read_text()).body if not isinstance(n, ast.Expr)]
+            assert [type(n) for n in body] == [ast.ImportFrom], f"{rel} runs more than cpu_math"
+            assert "cpu_math.set_default_environment()" in init.read_text()
             continue
         assert _docstring_only(init), f"{rel} runs code on import"
 

@@ -212,7 +212,7 @@ def test_manipulation_ingest_refuses_what_it_cannot_do(tmp_path):
     paths = Paths(tmp_path / "data")
     cases = {
         "ingest.ogbench.dataset_type=navigate": "play, noisy",
-        "ingest.ogbench.path=x.npz": "not supported",
+        "ingest.ogbench.path=x.npz": "not found",
         "ingest.ogbench.expert=experts/ant/actor.safetensors": "ant mazes",
     }
     for override, expected in cases.items():

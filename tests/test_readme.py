@@ -279,9 +279,13 @@ def test_every_repository_path_the_readme_names_exists():
     assert not missing, f"README names files that are not in the repository: {missing}"
 
 
+def _python_names(page: str) -> list[str]:
+    """The dotted names of the project's Python objects a page shows in code spans."""
+    return [s for s in _spans(page) if re.fullmatch(r"(pipeline|stages|bench)(\.\w+)+", s)]
+
+
 def _check_python_names(page: str, where: str) -> None:
-    names = [s for s in _spans(page) if re.fullmatch(r"(pipeline|stages|bench)(\.\w+)+", s)]
-    for name in names:
+    for name in _python_names(page):
         parts = name.split(".")
         for i in range(len(parts), 0, -1):
             try:
@@ -294,10 +298,6 @@ def _check_python_names(page: str, where: str) -> None:
             break
         else:
             pytest.fail(f"{where}: {name} is not importable")
-
-
-def test_every_python_name_the_readme_mentions_exists():
-    _check_python_names(README, "README")
 
 
 def test_readme_ingest_examples_of_other_data_name_their_dataset():
@@ -374,7 +374,17 @@ def test_every_repository_path_a_page_names_exists(page):
     assert not missing, f"{page} names files that are not in the repository: {missing}"
 
 
-@pytest.mark.parametrize("page", list(PAGES))
+def test_the_python_name_check_sees_names_and_refuses_wrong_ones():
+    assert "pipeline.errors.UserError" in _python_names(PAGES["docs/development.md"])
+    _check_python_names("`pipeline.errors.UserError` and `pipeline.io`", "page")
+    with pytest.raises(AssertionError, match="no NoSuchError"):
+        _check_python_names("`pipeline.errors.NoSuchError`", "page")
+    with pytest.raises(AssertionError, match="no no_such_stage"):
+        _check_python_names("`stages.no_such_stage`", "page")
+
+
+# Only the pages that name Python objects: a page naming none would check nothing.
+@pytest.mark.parametrize("page", [p for p in PAGES if _python_names(PAGES[p])])
 def test_every_python_name_a_page_mentions_exists(page):
     _check_python_names(PAGES[page], page)
 

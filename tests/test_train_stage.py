@@ -157,24 +157,35 @@ def test_a_trainer_started_by_dvc_stops_when_dvc_is_killed(paths, tmp_path):
         "import subprocess, sys, time\n"
         f"child = subprocess.Popen({train_cmd!r})\n"
         "print(child.pid, flush=True)\n"
-        "time.sleep(600)\n"
+        "child.wait()\n"
     )
     env = {**os.environ, "DVC_STAGE": "train", "OMP_NUM_THREADS": "1", "PYTHONPATH": str(root)}
     dvc = subprocess.Popen([sys.executable, "-c", fake_dvc], stdout=subprocess.PIPE, env=env)
     trainer = int(dvc.stdout.readline())
-    time.sleep(3)  # the trainer is importing torch, or training
+
+    def running() -> bool:
+        try:
+            os.kill(trainer, 0)
+            return Path(f"/proc/{trainer}/stat").read_text().split()[2] != "Z"  # Z: unreaped
+        except (ProcessLookupError, FileNotFoundError):
+            return False
+
+    # Kill DVC once the trainer is training (its dvclive folder exists), however long its
+    # imports take on a busy machine.
+    deadline = time.monotonic() + 120
+    while running() and not any(paths.root.glob("scratch/train/*/live")):
+        if time.monotonic() > deadline:
+            dvc.kill()
+            os.kill(trainer, signal.SIGKILL)
+            pytest.fail("the trainer did not start training in 120 s")
+        time.sleep(0.1)
+    assert running(), "the trainer ended before DVC was killed"
     dvc.kill()
     dvc.wait()
     deadline = time.monotonic() + 30
-    while time.monotonic() < deadline:
-        try:
-            os.kill(trainer, 0)
-        except ProcessLookupError:
-            break
-        if Path(f"/proc/{trainer}/stat").read_text().split()[2] == "Z":  # exited, unreaped
-            break
+    while running() and time.monotonic() < deadline:
         time.sleep(0.1)
-    else:
+    if running():
         os.kill(trainer, signal.SIGKILL)
         pytest.fail("the trainer kept running after DVC was killed")
 

@@ -348,6 +348,55 @@ def test_killed_run_resumes_and_ends_bit_identical_to_an_uninterrupted_one(tmp_p
     assert metrics["dtype"] == resolve_dtype("auto", torch.device("cpu"))
 
 
+def _busy_process() -> subprocess.Popen:
+    """A process that keeps one core busy until it is killed."""
+    return subprocess.Popen([sys.executable, "-c", "while True: pass"])
+
+
+def _kill_after_state(command: list[str], scratch: Path, step: int) -> int:
+    """Run `command`, SIGKILL it once its resume state reaches `step`; the state's step."""
+    proc = subprocess.Popen(command, env=_env(), stderr=subprocess.DEVNULL)
+    deadline, state = time.monotonic() + 240, None
+    while time.monotonic() < deadline and proc.poll() is None:
+        states = list(scratch.glob("skills-*/resume/state.json"))
+        state = states[0] if states else None
+        if state is not None and json.loads(state.read_text())["progress"]["step"] >= step:
+            break
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert state is not None, "the run wrote no resume state"
+    return json.loads(state.read_text())["progress"]["step"]
+
+
+@pytest.mark.slow  # three training processes at the main job's sizes, one beside a busy core
+def test_a_run_killed_and_resumed_under_load_on_other_thread_counts_is_bit_identical(tmp_path):
+    """The main job's sizes (batch 100 x window 40, hidden 128, z 16, float32): a run on one
+    thread, against one killed mid-way on two threads and resumed with `threads: auto` beside a
+    busy process (which takes one thread, then two once the process ends). Same bits."""
+    episodes = make_skill_episodes(n_episodes=24, length=200, seed=1)
+    segments = build_segments(episodes, make_info("skills", physics_dim=0), 40, 1, SPLIT, seed=0)
+    sizes = {"z_dim": 16, "hidden": 128, "batch_size": 100, "dtype": "float32",
+             "max_steps": 40, "eval_every": 10, "checkpoint_every": 10}  # fmt: skip
+    straight = _project(tmp_path / "straight", segments, sizes | {"threads": 1})
+    subprocess.run(_train_command(straight), check=True, env=_env(), capture_output=True)
+
+    killed = _project(tmp_path / "killed", segments, sizes | {"threads": 2})
+    busy = _busy_process()
+    try:
+        at = _kill_after_state(_train_command(killed), killed / "data/scratch/train", 10)
+        assert 10 <= at < 40, "the run was not killed mid-way"
+        resume = _train_command(killed, "-S", "train.threads=auto")
+        result = subprocess.run(resume, env=_env(), capture_output=True, text=True)
+    finally:
+        busy.kill()
+        busy.wait()
+    assert result.returncode == 0, result.stderr
+    assert f"resuming from step {at}" in result.stderr
+    for path in ("data/models/skills/model.safetensors", "data/reports/train/metrics.json"):
+        assert (straight / path).read_bytes() == (killed / path).read_bytes(), path
+
+
 @pytest.mark.slow
 def test_two_process_accelerate_run_trains_and_keeps_processes_in_sync(tmp_path, segments):
     project = _project(tmp_path, segments, {"max_steps": 40, "eval_every": 20, "device": "cpu"})

@@ -156,7 +156,8 @@ def test_the_overview_takes_any_agents_results(tmp_path, env):
     for entity in (
         "/agents/oposm/corners/starts", "/agents/oposm/corners/goals",
         "/agents/oposm/corners/failed_ends", "/agents/oposm/random_goal/starts",
-        "/agents/llp/corners/failed_paths", "/success/oposm", "/success/llp", "/summary",
+        "/agents/llp/corners/failed_paths", "/success/oposm/counts", "/success/llp/counts",
+        "/summary",
     ):  # fmt: skip
         assert entity in entities, entity
     assert "/agents/oposm/random_goal/failed_ends" not in entities  # no failure there
@@ -166,14 +167,20 @@ def test_the_overview_takes_any_agents_results(tmp_path, env):
     ends = _values(path, "/agents/llp/corners/failed_ends", "strips")[0]
     assert np.allclose(np.mean(ends[0], axis=0), maze.to_view([-2.1, 2.5]))  # the last state
     # Success per task: oposm 1/2 corners, 1/1 random_goal; llp 0/2 corners.
-    for agent, rates in (("oposm", [50.0, 100.0]), ("llp", [0.0])):
-        ((bars,),) = _values(path, f"/success/{agent}", "values")  # a tensor
-        assert np.allclose(bars["buffer"], rates)
+    # (bars: `/success/<agent>/<task number>`, scaled to their rate of the 0..100 % gridlines)
+    full = np.ptp(np.array(_values(path, "/success/grid", "strips")[0])[:, 0, 1])
+    for agent, bars in (("oposm", {0: 0.5, 1: 1.0}), ("llp", {})):
+        for task, rate in bars.items():
+            ((scale,),) = _values(path, f"/success/{agent}/{task}", "scale")
+            assert np.isclose(2 * scale[1], rate * full)  # 2 pixels high
+    assert "/success/llp/0" not in entities  # 0 %: no bar, its count "0/2" instead
+    assert _values(path, "/success/llp/counts", "labels")[0] == ["0/2"]
+    assert _values(path, "/success/tasks", "labels")[0] == ["corners", "random_goal"]
     ((text,),) = _values(path, "/summary", "text")
     assert "| oposm | corners | 1/2 (50 %) |" in text and "| llp | corners | 0/2 (0 %) |" in text
     views = _views(path)
     assert views["oposm: 2/3 reached the goal"] == "2D" and views["llp: 0/2 reached the goal"]
-    assert "BarChart" in views.values()
+    assert views["success rate per task"] == "2D"
     assert RrdReader(path).recordings()[0].application_id == "oposm-deploy-overview"
     write_overview(tmp_path / "none.rrd", [], env)
     assert not (tmp_path / "none.rrd").exists()

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from pydantic import ConfigDict, with_config
 
-from pipeline.envs.maze import Cell, layout_cell
+from pipeline.envs.ids import Cell, layout_cell
 from pipeline.errors import UserError
 
 # 4-connected moves (row, col), in the fixed order that breaks ties between equally short paths.

@@ -69,11 +69,11 @@ import gymnasium
 import mujoco
 import numpy as np
 
+from pipeline.envs.ids import MANIPSPACE_ENVS
 from pipeline.envs.maze import PHYSICS_SPEC
 from pipeline.errors import UserError
 
-# Supported env ids -> number of cubes (the scene has one cube, two buttons, a drawer, a window).
-MANIPSPACE_ENVS: tuple[str, ...] = ("cube-single-v0", "cube-double-v0", "scene-v0")
+# Cubes per id (`MANIPSPACE_ENVS`; the scene has one cube, two buttons, a drawer, a window).
 _CUBES = {"cube-single-v0": 1, "cube-double-v0": 2, "scene-v0": 1}
 # Step limit of an evaluation episode (the registered `max_episode_steps` of these ids).
 EPISODE_STEPS = {"cube-single-v0": 200, "cube-double-v0": 500, "scene-v0": 750}

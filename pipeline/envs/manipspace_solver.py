@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.envs.ids import OGBENCH_PREFIX, TASKS
 from pipeline.envs.manipspace import (
     EPISODE_STEPS,
     SUCCESS_TOLERANCE,
@@ -248,8 +249,6 @@ def episode_seeds(seed: int, task_id: int, k: int) -> tuple[int, int]:
     """(episode seed, reset seed) of episode `k` of task `task_id`: those of
     `pipeline.evaluation.tasks.manipulation_episodes`, so the oracle starts where the agents do
     (tests/test_manipspace_oracle.py holds them equal)."""
-    from pipeline.evaluation.tasks import TASKS
-
     seq = np.random.SeedSequence([seed, TASKS.index("ogbench"), task_id, k])
     episode_seed, reset_seed = (int(v) for v in seq.generate_state(2))
     return episode_seed, reset_seed
@@ -257,8 +256,6 @@ def episode_seeds(seed: int, task_id: int, k: int) -> tuple[int, int]:
 
 def evaluate(spec: ManipSpaceSpec, episodes: int, seed: int) -> dict[str, list[OracleEpisode]]:
     """`episodes` per OGBench task, `{"ogbench-task1": [...], ...}`, on the agents' starts."""
-    from pipeline.evaluation.tasks import OGBENCH_PREFIX
-
     env = make_manipspace_env(spec.env_id, max_episode_steps=EPISODE_STEPS[spec.env_id])
     out: dict[str, list[OracleEpisode]] = {}
     for task in spec.tasks():

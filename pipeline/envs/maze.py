@@ -11,7 +11,6 @@ from __future__ import annotations
 import contextlib
 import functools
 import io
-import math
 import warnings
 from pathlib import Path
 from typing import Any
@@ -20,14 +19,9 @@ import gymnasium as gym
 import mujoco
 import numpy as np
 
+from pipeline.envs.ids import SUPPORTED_ENVS, Cell
+from pipeline.envs.ids import layout_cell as layout_cell  # also imported from here
 from pipeline.errors import UserError
-
-# Supported ids and their D4RL maze2d step limits (also gymnasium-robotics' `max_episode_steps`).
-SUPPORTED_ENVS: dict[str, int] = {
-    "PointMaze_UMaze-v3": 300,
-    "PointMaze_Medium-v3": 600,
-    "PointMaze_Large-v3": 800,
-}
 
 # `PointEnv.step` clips each velocity component to this before simulating (m/s).
 MAX_AXIS_SPEED = 5.0
@@ -35,8 +29,6 @@ MAX_AXIS_SPEED = 5.0
 AGENT_RADIUS = 0.1
 # MuJoCo state spec recorded per step: time, qpos, qvel (+ act, mocap, ...: empty here).
 PHYSICS_SPEC = mujoco.mjtState.mjSTATE_FULLPHYSICS
-
-Cell = tuple[int, int]
 
 
 @functools.cache
@@ -232,11 +224,3 @@ def maze_layout(env: gym.Env) -> dict[str, Any]:
         "bounds": [-x_c, -x_c + len(maze_map[0]) * scale, y_c - len(maze_map) * scale, y_c],
         "agent_radius": AGENT_RADIUS,
     }
-
-
-def layout_cell(layout: dict[str, Any], x: float, y: float) -> Cell:
-    """`(row, col)` of point `(x, y)` from a `maze_layout` dict (same formula as the maze's)."""
-    scale = layout["maze_size_scaling"]
-    row = math.floor((layout["y_map_center"] - y) / scale)
-    col = math.floor((x + layout["x_map_center"]) / scale)
-    return row, col

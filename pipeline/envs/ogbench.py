@@ -45,15 +45,10 @@ import gymnasium
 import mujoco
 import numpy as np
 
+from pipeline.envs.ids import OGBENCH_MAZES
 from pipeline.envs.maze import PHYSICS_SPEC, restore_physics
 from pipeline.errors import UserError
 
-# Supported OGBench env ids -> (locomotion type, maze type).
-OGBENCH_MAZES: dict[str, tuple[str, str]] = {
-    f"{loco}maze-{size}-v0": (loco, size)
-    for loco in ("point", "ant")
-    for size in ("medium", "large", "giant", "teleport")
-}
 # Step limit of an evaluation episode (the registered `max_episode_steps` of these ids).
 EPISODE_STEPS = 1000
 # OGBench's maze geometry (`MazeEnv`: maze_unit 4, offsets 4, noise 1).

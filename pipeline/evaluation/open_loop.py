@@ -236,8 +236,8 @@ def tawm_predictive(
     return mean, var.sqrt()
 
 
-def _labels(segments: Segments, steps: np.ndarray) -> list[str]:
-    """'test episode <source index>, step <t>' for global step indices (error messages)."""
+def start_labels(segments: Segments, steps: np.ndarray) -> list[str]:
+    """'test episode <source index>, step <t>' for global step indices (messages, titles)."""
     ep = np.searchsorted(segments.episode_offsets, steps, side="right") - 1
     return [
         f"test episode {segments.episode_index[e]}, step {s - segments.episode_offsets[e]}"
@@ -277,7 +277,7 @@ def run_open_loop(
     rec_actions = torch.as_tensor(segments.actions[steps[:, :-1]], device=device)
     physics = np.repeat(segments.physics[starts], cfg.repeats, axis=0)
     observed = np.repeat(segments.states[starts], cfg.repeats, axis=0)
-    labels = _labels(segments, np.repeat(starts, cfg.repeats))
+    labels = start_labels(segments, np.repeat(starts, cfg.repeats))
     sim = BatchSim(spec, len(physics), pushes=Pushes.of_dataset(segments.info.generator))
     push_seeds = [cfg.seed * 1_000_003 + j for j in range(len(physics))]  # same in both modes
 

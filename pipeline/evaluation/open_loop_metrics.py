@@ -217,10 +217,8 @@ def open_loop_report(
         report["real_wall_crossing"] = float(np.concatenate(real_crossing).mean())
     else:  # a manipulation env: positions are its goal dims in observation units
         report["position_unit"] = "observation units"
-    report["timing"] = {
-        "sim_steps": v.sim_steps,
-        "sim_steps_per_s": v.sim_steps / max(v.sim_s, 1e-9),
-    }
+    # Steps, not seconds: the report must be byte-identical when rerun (the stage logs the rate).
+    report["timing"] = {"sim_steps": v.sim_steps}
     return report
 
 

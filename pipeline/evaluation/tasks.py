@@ -30,14 +30,11 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.envs.ids import OGBENCH_PREFIX, TASKS, layout_cell
 from pipeline.envs.manipspace import ManipSpaceSpec
-from pipeline.envs.maze import layout_cell
 from pipeline.envs.ogbench import TASK_NOISE, is_ogbench_maze, ogbench_tasks
 from pipeline.errors import UserError
 from pipeline.segments import Segments
-
-TASKS = ("corners", "random_goal", "goal", "ogbench")
-OGBENCH_PREFIX = "ogbench-"
 
 
 @dataclass(frozen=True)

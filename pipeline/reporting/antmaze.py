@@ -66,6 +66,7 @@ from pipeline.reporting.common import (
     read,
     reproduces,
     stamp_text,
+    train_speed,
     versus,
     write_report,
 )
@@ -332,8 +333,8 @@ def _data_lines(maze: Mapping[str, Any]) -> list[str]:
     if train:
         val = train["val"]
         lines.append(
-            f"- Training (EM): {train['steps']} steps ({train['steps_per_s']:.2f} "
-            f"steps/s, {train['wall_s'] / 60:.0f} min on {train.get('device')}); "
+            f"- Training (EM): {train['steps']} steps ({train_speed(train)} on "
+            f"{train.get('device')}); "
             f"published checkpoint by `{train['select']}` at step {train['best_step']}; "
             f"validation s_T NLL {val['st_nll']:.2f} (posterior skill), "
             f"{val['st_nll_prior']:.2f} (prior skills); KL(q || prior) "

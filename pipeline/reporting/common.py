@@ -55,12 +55,7 @@ Report = dict[str, Any]
 HOLDS, FAILS, INCONCLUSIVE = "holds", "does not hold", "inconclusive"
 
 
-def read(path: Path) -> Report | None:
-    """A JSON report, or None when it does not exist.
-
-    Raises:
-        UserError: the file is not valid JSON (one line naming it).
-    """
+def _load(path: Path) -> Any:
     try:
         return json.loads(path.read_text())
     except FileNotFoundError:
@@ -69,7 +64,43 @@ def read(path: Path) -> Report | None:
         raise UserError(f"{path}: not valid JSON ({exc.msg}); re-run its stage") from exc
 
 
+def with_timings(report: Any, timings: Any) -> Any:
+    """`report` with the wall-clock measurements its stage wrote apart (`data/timings/`, the
+    nesting of the report: `stages.report.split_timings`) put back in place."""
+    if not isinstance(report, dict) or not isinstance(timings, dict):
+        return report
+    merged = dict(report)
+    for key, value in timings.items():
+        merged[key] = with_timings(merged[key], value) if key in merged else value
+    return merged
+
+
+def read(path: Path) -> Report | None:
+    """A JSON report, or None when it does not exist. A stage report
+    (`<data>/reports/<stage>/report.json` or dvclive's `metrics.json`) comes with its stage's
+    wall-clock measurements from `<data>/timings/<stage>.json` where that file exists (they are
+    measurements of the machine that ran it, kept out of the stage's outputs).
+
+    Raises:
+        UserError: the file is not valid JSON (one line naming it).
+    """
+    report = _load(path)
+    if report is None or path.parent.parent.name != "reports":
+        return report
+    if path.name not in ("report.json", "metrics.json"):
+        return report
+    timings = _load(path.parents[2] / "timings" / f"{path.parent.name}.json")
+    return with_timings(report, timings) if timings is not None else report
+
+
 # --- format -------------------------------------------------------------------------------------
+
+
+def train_speed(train: Report) -> str:
+    """Steps/s and minutes from a train report's timings, or "time not recorded"."""
+    if "steps_per_s" not in train or "wall_s" not in train:
+        return "time not recorded"
+    return f"{train['steps_per_s']:.2f} steps/s, {train['wall_s'] / 60:.0f} min"
 
 
 def pct(x: float, digits: int = 1) -> str:

@@ -43,6 +43,7 @@ from pipeline.reporting.common import (
     rate_of,
     read,
     stamp_text,
+    train_speed,
     versus,
     write_report,
 )
@@ -158,8 +159,8 @@ def _data_lines(data: Mapping[str, Any]) -> list[str]:
     if train:
         val = train["val"]
         lines.append(
-            f"- Training (EM): {train['steps']} steps ({train['steps_per_s']:.2f} steps/s, "
-            f"{train['wall_s'] / 60:.0f} min on {train.get('device')}); published checkpoint by "
+            f"- Training (EM): {train['steps']} steps ({train_speed(train)} on "
+            f"{train.get('device')}); published checkpoint by "
             f"`{train['select']}` at step {train['best_step']}; validation s_T NLL "
             f"{val['st_nll']:.2f} (posterior skill), {val['st_nll_prior']:.2f} (prior skills)"
             + (f"; diverged: {train['diverged']}" if "diverged" in train else "")

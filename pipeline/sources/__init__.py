@@ -4,7 +4,8 @@
 - `read_d4rl`: a D4RL hdf5 file, through h5py (maze2d coordinates converted for PointMaze).
 - `read_minari`: a local Minari dataset, through `minari`.
 - `read_ogbench` / `generate_ogbench`: OGBench maze data, from its `.npz` files or its recipe;
-  `open_manipulation`: OGBench's manipulation data (cube, scene), from its recipe.
+  `open_manipulation`: OGBench's manipulation data (cube, scene), from its recipe or OGBench's
+  `.npz` files (states restored from their qpos / qvel).
 - `export_lerobot`: one of our MCAP datasets as a LeRobot v3.0 dataset.
 
 `open_source(params.ingest)` picks the importer named by `ingest.source`. `lerobot` and `minari`
@@ -97,7 +98,7 @@ def open_ogbench(cfg: IngestParams, progress: bool = False) -> ImportedDataset:
             )
         return open_manipulation(
             og.env_id, og.dataset_type, cfg.episodes, cfg.episode_steps, cfg.seed, cfg.name,
-            og.noise, og.path, progress, og.workers,
+            og.noise, og.path, progress, og.workers, og.include_val,
         )  # fmt: skip
     if og.path:
         if og.expert:

@@ -8,7 +8,8 @@ instead (`write_dataset_view`): every episode's path (one colour per episode, st
 demonstrator reached (rings), and on the `time` timeline (the dataset's clock, simulated seconds)
 the agent, the current episode's path and goal, the actions and the other state dimensions
 (velocities) as plots; an `episode` timeline jumps between episodes. The text panel is
-`oposm inspect`'s summary.
+`oposm inspect`'s summary. Point and ant mazes share this view; OGBench's manipulation datasets
+have no maze and get a 3-D view of the table instead (`pipeline.viz.manip_dataset`).
 """
 
 from __future__ import annotations
@@ -20,10 +21,21 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
+from pipeline.envs.manipspace import ManipSpaceSpec, is_manipspace, manipspace_spec
 from pipeline.envs.spec import make_env_spec
 from pipeline.errors import UserError
 from pipeline.io import atomic_path
 from pipeline.recording import format_summary, iter_episodes, read_info, summarize
+from pipeline.viz.manip_dataset import (
+    MAX_MANIP_EPISODES,
+    log_manip_episode,
+    log_manip_paths,
+    log_manip_scene,
+    log_manip_styles,
+    manip_blueprint,
+    manip_legend,
+)
+from pipeline.viz.manip_scene import ArmPoses
 from pipeline.viz.maze import (
     AGENT,
     GOAL,
@@ -52,12 +64,20 @@ SERIES_COLORS = [(50, 100, 200), (230, 130, 20), (120, 120, 120), (150, 80, 200)
 
 
 def _layout(info: Any) -> tuple[dict[str, Any] | None, list[int]]:
-    """The maze layout (None without a simulator here) and the position dims."""
+    """The maze layout (None without a simulator here, or for an env without a maze) and the
+    position dims."""
     try:
         spec = make_env_spec(info.env_id, info.env_kwargs)
     except UserError:
         return None, [0, 1]
+    if "bounds" not in spec.layout:
+        return None, [0, 1]
     return spec.layout, list(spec.goal_dims)
+
+
+def _manip_spec(info: Any) -> ManipSpaceSpec | None:
+    """The spec of an OGBench manipulation env, else None."""
+    return manipspace_spec(info.env_id) if is_manipspace(info.env_id) else None
 
 
 def dataset_blueprint(
@@ -134,6 +154,10 @@ def write_dataset_view(
     """
     info = read_info(mcap)
     summary = summarize(mcap)
+    manip = _manip_spec(info)
+    if manip is not None:
+        return _write_manip_view(mcap, path, info, summary, manip, min(max_episodes,
+                                 MAX_MANIP_EPISODES))  # fmt: skip
     layout, pos = _layout(info)
     others = [k for k in range(info.state_dim) if k not in pos]
     names = (info.action_names, info.state_names, others)
@@ -173,20 +197,60 @@ def write_dataset_view(
                     ),
                     static=True,
                 )
-            shown = len(paths)
-            note = (
-                f"\n\nShowing the first {shown} of {summary['episodes']} episodes."
-                if shown < summary["episodes"]
-                else ""
-            )
-            text = f"```\n{format_summary(summary)}\n```{note}"
-            rec.log("summary", rr.TextDocument(text, media_type="text/markdown"), static=True)
+            _log_summary(rec, summary, len(paths))
             if layout is not None:
                 log_legend(rec, layout, _legend())
             rec.flush()
         finally:
             rec.disconnect()
     return {"episodes": len(paths), "total": summary["episodes"]}
+
+
+def _log_summary(rec: rr.RecordingStream, summary: dict[str, Any], shown: int) -> None:
+    """`oposm inspect`'s summary, and how many episodes the view shows when not all."""
+    note = (
+        f"\n\nShowing the first {shown} of {summary['episodes']} episodes."
+        if shown < summary["episodes"]
+        else ""
+    )
+    text = f"```\n{format_summary(summary)}\n```{note}"
+    rec.log("summary", rr.TextDocument(text, media_type="text/markdown"), static=True)
+
+
+def _write_manip_view(
+    mcap: str | Path,
+    path: str | Path,
+    info: Any,
+    summary: dict[str, Any],
+    spec: ManipSpaceSpec,
+    max_episodes: int,
+) -> dict[str, Any]:
+    """`write_dataset_view` of a manipulation dataset (`pipeline.viz.manip_dataset`)."""
+    rec = rr.RecordingStream(APPLICATION_ID, recording_id=f"dataset-{info.name}")
+    poser = ArmPoses(spec)
+    pinches: list[np.ndarray] = []
+    cubes: list[np.ndarray] = []
+    goals = bool(info.goal_dim)
+    with atomic_path(path) as tmp:
+        try:  # the file is closed before it is renamed into place, or removed after an error
+            window = summary["steps"] / max(summary["episodes"], 1) * info.control_period
+            legend = manip_legend(spec, goals)
+            rec.save(tmp, default_blueprint=manip_blueprint(len(legend), window))
+            rec.send_recording_name(info.name)
+            log_manip_scene(rec, spec, goals)
+            log_manip_styles(rec, list(info.action_names))
+            for ep in iter_episodes(mcap):
+                if ep.index >= max_episodes:
+                    break
+                pinch, cube = log_manip_episode(rec, ep, spec, poser, list(info.action_names))
+                pinches.append(pinch)
+                cubes.append(cube)
+            log_manip_paths(rec, pinches, cubes)
+            _log_summary(rec, summary, len(pinches))
+            rec.flush()
+        finally:
+            rec.disconnect()
+    return {"episodes": len(pinches), "total": summary["episodes"]}
 
 
 def _log_styles(rec: rr.RecordingStream, names: Any, goal_radius: float, u: float) -> None:

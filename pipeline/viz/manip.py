@@ -1,17 +1,17 @@
 """Rerun recordings of deployed episodes in OGBench's manipulation envs (cube-single, cube-double,
 scene), and their run overview.
 
-An episode's recording: a 3-D view of the workspace (its bounds as a wire box, metres, z up) with
-the cubes (dots) and the pinch site (small dot, its path so far as a line) at every step, each
-goal cube as a wire box of OGBench's success tolerance (0.04 m) beside them, and at every replan
-the chosen plan's predicted cube and pinch positions (green for the TAWM's skill ends, pink for
-LLP's actions). On the right: the outcome and the task's goal in words, the distance to the goal in
-success tolerances (`pipeline.evaluation.goals`: 1 is at the tolerance), the plan cost, the
-actions. Timelines `step` and `sim_time`, as the maze recordings. The scene's buttons, drawer and
-window have no geometry here: their goal states and where they are at the end are in the text,
-and their part of the distance is in the distance plot.
+An episode's recording: a 3-D view of the table (metres, z up, framed on the workspace) with the
+arm, the cubes and the scene's parts at every step (`pipeline.viz.manip_scene`: MuJoCo's
+kinematics of the observed joints), each cube's goal as a wire box of OGBench's success tolerance
+(0.04 m) in the cube's colour, the pinch site's path so far, and at every replan the chosen plan's
+predicted cube and pinch positions (green for the TAWM's skill ends, pink for LLP's actions). On
+the right: the outcome and the task in words beside a legend, the distance to the goal in success
+tolerances (`pipeline.evaluation.goals`: 1 is at the tolerance), the plan cost, the actions.
+Timelines `step` and `sim_time`, as the maze recordings. The scene's goal states of its buttons,
+drawer and window are in the text; their part of the distance is in the distance plot.
 
-The overview holds the success table and the bar chart of the maze overview, without a map.
+The overview holds the success table and the success bars of the maze overview, without a map.
 
 Validate's 3-D view is `pipeline.viz.manip_validate`.
 """
@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import rerun as rr
@@ -29,27 +30,38 @@ from pipeline.envs.manipspace import (
     DRAWER_SCALE,
     SUCCESS_TOLERANCE,
     WINDOW_SCALE,
-    WORKSPACE_BOUNDS,
-    XYZ_CENTER,
-    XYZ_SCALE,
     ManipSpaceSpec,
 )
 from pipeline.evaluation.episodes import EpisodeResult
 from pipeline.evaluation.goals import GoalRule
 from pipeline.io import atomic_path
 from pipeline.viz.deploy import ACTION_COLORS, RADIUS_LINE, application_id, recording_name
-from pipeline.viz.maze import AGENT, GOAL, LLP_PLAN, PATH, PLAN
-from pipeline.viz.overview import APPLICATION_ID, RECORDING, group, log_success_bars, success_table
+from pipeline.viz.manip_scene import (
+    PINCH,
+    ArmPoses,
+    legend_view,
+    log_cubes,
+    log_goals,
+    log_manip_legend,
+    log_robot,
+    log_table,
+    log_to_goal,
+    robot_legend,
+    to_metres,
+    workspace_view,
+)
+from pipeline.viz.maze import GOAL, LLP_PLAN, PATH, PLAN, Color
+from pipeline.viz.overview import (
+    APPLICATION_ID,
+    RECORDING,
+    group,
+    log_success_bars,
+    success_bars_view,
+    success_table,
+)
 
-PINCH = slice(12, 15)  # the pinch site's position in the observation (scaled as the cubes)
-CUBE_COLORS = [(230, 130, 20), (60, 120, 220)]
 ACTION_NAMES = ("dx", "dy", "dz", "dyaw", "dgrip")
 PATH_UPDATES = 80  # the pinch path is re-logged about this often per episode (and at replans)
-
-
-def to_metres(observed: np.ndarray) -> np.ndarray:
-    """Positions `[..., 3]` in observation units (`(p - [0.425, 0, 0]) * 10`) -> metres."""
-    return XYZ_CENTER + np.asarray(observed, dtype=np.float64) / XYZ_SCALE
 
 
 def cube_positions(states: np.ndarray, spec: ManipSpaceSpec) -> np.ndarray:
@@ -61,58 +73,31 @@ def _times(steps: np.ndarray, dt: float) -> list[rr.TimeColumn]:
     return [rr.TimeColumn("step", sequence=steps), rr.TimeColumn("sim_time", duration=steps * dt)]
 
 
-def _colors(n_cubes: int) -> list[tuple[int, int, int]]:
-    return [CUBE_COLORS[i % len(CUBE_COLORS)] for i in range(n_cubes)]
+def goal_cubes(result: EpisodeResult, spec: ManipSpaceSpec) -> np.ndarray:
+    """`[n_cubes, 3]` the episode's goal positions of the cubes (m)."""
+    return to_metres(result.spec.goal[: 3 * spec.n_cubes].reshape(spec.n_cubes, 3))
 
 
-def _log_scene(rec: rr.RecordingStream, result: EpisodeResult, spec: ManipSpaceSpec) -> None:
-    """The workspace bounds and the goal cubes (static)."""
-    low, high = WORKSPACE_BOUNDS
-    rec.log(
-        "world/workspace",
-        rr.Boxes3D(centers=[(low + high) / 2], half_sizes=[(high - low) / 2], colors=[RADIUS_LINE]),
-        static=True,
-    )
-    goal_cubes = to_metres(result.spec.goal[: 3 * spec.n_cubes].reshape(spec.n_cubes, 3))
-    rec.log(
-        "world/goal",
-        rr.Boxes3D(
-            centers=goal_cubes,
-            half_sizes=[[SUCCESS_TOLERANCE] * 3] * spec.n_cubes,
-            colors=[GOAL] * spec.n_cubes,
-            labels=[f"goal {i}" for i in range(spec.n_cubes)],
-        ),
-        static=True,
-    )
+def _legend(result: EpisodeResult, spec: ManipSpaceSpec) -> list[tuple[str, Color, Any]]:
+    items = robot_legend(spec.n_cubes) + [("gripper path", PATH, "line")]
+    if result.trace.plans:
+        name = "LLP: predicted" if result.agent == "llp" else "TAWM: predicted"
+        color = LLP_PLAN if result.agent == "llp" else PLAN
+        items += [(f"{name} cubes", color, "dot"), (f"{name} gripper", color, "line")]
+    return items
 
 
 def _log_states(
     rec: rr.RecordingStream, result: EpisodeResult, spec: ManipSpaceSpec, radius: float
 ) -> None:
-    """Cubes and pinch site at every step, the pinch path, the per-step scalars."""
+    """Robot, cubes and scene parts at every step, the pinch path, the per-step scalars."""
     states = np.asarray(result.trace.states)  # [n + 1, sd]
     steps = np.arange(len(states))
-    n = spec.n_cubes
-    cubes = cube_positions(states, spec).reshape(-1, 3)
-    rec.send_columns(
-        "world/cubes",
-        indexes=_times(steps, spec.dt),
-        columns=rr.Points3D.columns(positions=cubes).partition(np.full(len(steps), n)),
-    )
-    rec.log(
-        "world/cubes",
-        rr.Points3D.from_fields(
-            colors=_colors(n), radii=0.02, labels=[f"cube {i}" for i in range(n)]
-        ),
-        static=True,
-    )
+    times = _times(steps, spec.dt)
+    log_robot(rec, ArmPoses(spec)(states), times)
+    cubes = log_cubes(rec, spec, states, times)
+    log_to_goal(rec, cubes, goal_cubes(result, spec), times)
     pinch = to_metres(states[:, PINCH])
-    rec.send_columns(
-        "world/pinch",
-        indexes=_times(steps, spec.dt),
-        columns=rr.Points3D.columns(positions=pinch).partition(np.ones(len(steps), dtype=int)),
-    )
-    rec.log("world/pinch", rr.Points3D.from_fields(colors=AGENT, radii=0.01), static=True)
     every = max(1, len(steps) // PATH_UPDATES)
     at = sorted({*range(0, len(steps), every), *result.trace.replan_steps, len(steps) - 1})
     rec.send_columns(
@@ -129,9 +114,7 @@ def _log_states(
     }
     for name, (values, color, label) in metrics.items():
         rec.log(f"metrics/{name}", rr.SeriesLines(colors=color, names=label), static=True)
-        rec.send_columns(
-            f"metrics/{name}", _times(steps, spec.dt), rr.Scalars.columns(scalars=values)
-        )
+        rec.send_columns(f"metrics/{name}", times, rr.Scalars.columns(scalars=values))
     if result.trace.actions:
         actions = np.asarray(result.trace.actions)
         for k, name in enumerate(ACTION_NAMES[: actions.shape[1]]):
@@ -181,29 +164,30 @@ def _objects(state: np.ndarray, spec: ManipSpaceSpec) -> str:
 
 
 def _summary(result: EpisodeResult, spec: ManipSpaceSpec) -> str:
-    """Markdown: the outcome, the task, the goal and where the objects ended."""
+    """Markdown: the outcome (short: it is the heading), the task, where the objects ended."""
     r, s = result, result.spec
     if r.error is not None:
-        outcome = f"failed after {r.steps} steps: {r.error}"
+        outcome = f"failed after {r.steps} steps"
     elif r.success:
-        outcome = f"reached the goal in {r.steps_to_goal} steps ({r.steps_to_goal * spec.dt:.2f} s)"
+        outcome = f"reached the goal in {r.steps_to_goal} steps ({r.steps_to_goal * spec.dt:.1f} s)"
     else:
-        outcome = (
-            f"did not reach the goal in {r.steps} steps (closest {r.min_distance:.2f} "
-            f"tolerances, final {r.final_distance:.2f})"
-        )
-    goal_cubes = to_metres(s.goal[: 3 * spec.n_cubes].reshape(spec.n_cubes, 3))
-    end_cubes = cube_positions(np.asarray(r.trace.states[-1]), spec)
+        outcome = f"did not reach the goal in {r.steps} steps"
     lines = [
-        f"### {outcome}",
+        f"### {r.agent + ': ' if r.agent else ''}{outcome}",
         "",
-        f"- **{r.agent}**, {spec.env_id} **{s.task}**, episode "
-        f"{s.index}, seed {s.seed}; {r.replans} replans",
+        f"- {spec.env_id} **{s.task}**, episode {s.index}, seed {s.seed}, {r.replans} replans",
     ]
-    for i, (goal, end) in enumerate(zip(goal_cubes, end_cubes, strict=True)):
+    if r.error is not None:
+        lines.append(f"- error: {r.error}")
+    elif not r.success:
         lines.append(
-            f"- cube {i}: goal ({', '.join(f'{v:.3f}' for v in goal)}) m, at the end "
-            f"{np.linalg.norm(end - goal):.3f} m from it (success within {SUCCESS_TOLERANCE} m)"
+            f"- closest {r.min_distance:.2f} tolerances from the goal, final {r.final_distance:.2f}"
+        )
+    end_cubes = cube_positions(np.asarray(r.trace.states[-1]), spec)
+    for i, (goal, end) in enumerate(zip(goal_cubes(r, spec), end_cubes, strict=True)):
+        lines.append(
+            f"- cube {i} ends {100 * np.linalg.norm(end - goal):.1f} cm from its goal "
+            f"(success within {100 * SUCCESS_TOLERANCE:.0f} cm)"
         )
     if spec.scene:
         goal_state = np.full(spec.state_dim, np.nan)
@@ -213,10 +197,13 @@ def _summary(result: EpisodeResult, spec: ManipSpaceSpec) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _blueprint(plans: bool) -> rrb.Blueprint:
+def _blueprint(plans: bool, legend_items: int) -> rrb.Blueprint:
     def linked(name: str, contents: str | list[str]) -> rrb.TimeSeriesView:
         return rrb.TimeSeriesView(
-            name=name, contents=contents, axis_x=rrb.TimeAxis(link="LinkToGlobal")
+            name=name,
+            contents=contents,
+            axis_x=rrb.TimeAxis(link="LinkToGlobal"),
+            plot_legend=rrb.PlotLegend(corner="RightTop"),
         )
 
     plots = [
@@ -230,12 +217,13 @@ def _blueprint(plans: bool) -> rrb.Blueprint:
     ]
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Spatial3DView(name="workspace (m, z up)", origin="/world"),
-            rrb.Vertical(*plots, row_shares=[2] + [3] * (len(plots) - 1)),
-            column_shares=[3, 2],
+            workspace_view("workspace (m, z up)", "/world/**"),
+            legend_view(legend_items),
+            rrb.Vertical(*plots, row_shares=[3] + [2] * (len(plots) - 1)),
+            column_shares=[3, 0.75, 2],
         ),
         rrb.TimePanel(timeline="sim_time", play_state="following", state="collapsed"),
-        rrb.BlueprintPanel(state="expanded"),
+        rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
     )
 
@@ -245,12 +233,15 @@ def write_manip_episode_recording(
 ) -> None:
     """Write one manipulation episode's recording to `path`, atomically (module docstring)."""
     rec = rr.RecordingStream(application_id(result), recording_id=recording_name(result))
+    legend = _legend(result, spec)
     with atomic_path(path) as tmp:
         try:  # the file is closed before it is renamed into place, or removed after an error
-            rec.save(tmp, default_blueprint=_blueprint(bool(result.trace.plans)))
+            rec.save(tmp, default_blueprint=_blueprint(bool(result.trace.plans), len(legend)))
             rec.send_recording_name(recording_name(result))
             rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-            _log_scene(rec, result, spec)
+            log_table(rec, spec)
+            log_goals(rec, goal_cubes(result, spec))
+            log_manip_legend(rec, legend)
             rec.log(
                 "summary",
                 rr.TextDocument(_summary(result, spec), media_type="text/markdown"),
@@ -277,17 +268,15 @@ def write_manip_overview(
         f"{success_table(grouped)}\n\n"
         "Open `<agent>-<task>-<episode>.rrd` for an episode's 3-D view (when it was recorded)."
     )
-    tasks = list(dict.fromkeys(t for by_task in grouped.values() for t in by_task))  # as the bars
     blueprint = rrb.Blueprint(
         rrb.Horizontal(
             rrb.TextDocumentView(name="success per task", contents="/summary"),
-            rrb.BarChartView(
-                name="success rate (%) per task: "
-                + ", ".join(f"{i} {t}" for i, t in enumerate(tasks)),
-                contents="/success/**",
-            ),
+            success_bars_view(grouped),
+            column_shares=[1, 1],
         ),
         rrb.TimePanel(state="hidden"),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
     )
     rec = rr.RecordingStream(APPLICATION_ID, recording_id=RECORDING)
     with atomic_path(path) as tmp:

@@ -51,7 +51,7 @@ def faded(color: Color, keep: float = 0.35) -> Color:
     return tuple(round(keep * c + (1 - keep) * f) for c, f in zip(color[:3], FLOOR, strict=True))
 
 
-def _text(color: Color) -> Color:
+def text_color(color: Color) -> Color:
     """A label colour that reads on the label boxes of both themes: pale colours darkened."""
     if 0.299 * color[0] + 0.587 * color[1] + 0.114 * color[2] < 150:
         return tuple(color[:3])
@@ -172,7 +172,7 @@ def log_legend(
         rec.log(f"{entity}/{k}", item, static=True)
         rec.log(
             f"{entity}/{k}/label",
-            rr.Points2D([at + [0, 2.2 * r]], radii=1e-4, colors=_text(color), labels=label,
+            rr.Points2D([at + [0, 2.2 * r]], radii=1e-4, colors=text_color(color), labels=label,
                         show_labels=True),
             static=True,
         )  # fmt: skip

@@ -37,6 +37,7 @@ from pipeline.viz.maze import (
     log_legend,
     log_maze,
     map_view,
+    text_color,
     to_view,
     unit,
 )
@@ -159,22 +160,119 @@ def agent_color(agent: str, index: int) -> tuple[int, ...]:
     return AGENT_COLORS.get(agent, OTHER_COLORS[index % len(OTHER_COLORS)])
 
 
+GRID = (200, 200, 200)
+AXIS_TEXT = (90, 90, 90)
+
+
+def _chart_height(n_tasks: int) -> float:
+    """Height of 100 % in the chart's units (one task per unit across): Rerun keeps a 2-D view's
+    aspect, so the bars are scaled to a chart about 3 : 2 wide."""
+    return max(2.0, 0.6 * n_tasks)
+
+
 def log_success_bars(
     rec: rr.RecordingStream, grouped: dict[str, dict[str, list[EpisodeResult]]]
 ) -> None:
-    """One bar series per agent (its name in the legend), bars at x = the task's number."""
+    """Success per task as a bar chart drawn in a 2-D view (`success_bars_view`): a bar per
+    agent and task (`success/<agent>/<task number>`, `wins/n` above it), gridlines at 0, 25, 50,
+    75 and 100 %, the task names under their bars and the agents' names in their colours. Drawn
+    by hand because Rerun's bar chart view fits its axis to the data (-2..2 at 0 %) and has no
+    category names."""
     tasks = _tasks(grouped)
+    h = _chart_height(len(tasks))
     width = 0.8 / len(grouped)
     for i, (agent, by_task) in enumerate(grouped.items()):
-        x = [tasks.index(t) - 0.4 + width * (i + 0.05) for t in by_task]  # left edges
-        rates = [100.0 * _rate(rs)[0] / max(len(rs), 1) for rs in by_task.values()]
+        x = np.array([tasks.index(t) - 0.4 + width * (i + 0.5) for t in by_task])  # centres
+        counts = [_rate(rs)[:2] for rs in by_task.values()]
+        rates = np.array([wins / max(n, 1) for wins, n in counts])
+        color = agent_color(agent, i)
+        tops = rates * h
+        for task, xi, top in zip(by_task, x, tops, strict=True):
+            if top > 0:  # a bar is a 2 x 2 image stretched over it: filled, square ends
+                rec.log(
+                    f"success/{agent}/{tasks.index(task)}",
+                    rr.Transform3D(
+                        translation=[xi - 0.42 * width, -top, 0.0],
+                        scale=[0.42 * width, top / 2, 1.0],
+                    ),
+                    rr.Image(
+                        np.full((2, 2, 3), color[:3], dtype=np.uint8),
+                        color_model="RGB",
+                        draw_order=ORDER_MARKER,
+                    ),
+                    static=True,
+                )
         rec.log(
-            f"success/{agent}",
-            rr.BarChart(
-                rates, abscissa=x, widths=[0.9 * width] * len(x), color=agent_color(agent, i)
+            f"success/{agent}/counts",
+            rr.Points2D(
+                np.stack([x, -tops - 0.05 * h], axis=1),
+                radii=1e-4,
+                colors=text_color(color),
+                labels=[f"{wins}/{n}" for wins, n in counts],
+                show_labels=True,
             ),
             static=True,
         )
+        rec.log(
+            f"success/legend/{i}",
+            rr.Points2D(
+                [[-0.3 + 1.0 * i, -1.12 * h]],
+                radii=1e-4,
+                colors=text_color(color),
+                labels=agent,
+                show_labels=True,
+            ),
+            static=True,
+        )
+    right = len(tasks) - 0.5
+    levels = [0.0, 0.25, 0.5, 0.75, 1.0]
+    rec.log(
+        "success/grid",
+        rr.LineStrips2D(
+            [[[-0.5, -v * h], [right, -v * h]] for v in levels],
+            radii=[0.004 * h if v in (0.0, 1.0) else 0.002 * h for v in levels],
+            colors=GRID,
+            draw_order=ORDER_TRACE,
+        ),
+        static=True,
+    )
+    rec.log(
+        "success/axis",
+        rr.Points2D(
+            [[-0.75, -v * h] for v in levels],
+            radii=1e-4,
+            colors=AXIS_TEXT,
+            labels=[f"{100 * v:.0f} %" for v in levels],
+            show_labels=True,
+        ),
+        static=True,
+    )
+    # Long names alternate between two rows so that neighbours do not overlap.
+    below = [0.08 * h if k % 2 == 0 or len(tasks) <= 5 else 0.17 * h for k in range(len(tasks))]
+    rec.log(
+        "success/tasks",
+        rr.Points2D(
+            [[k, b] for k, b in enumerate(below)],
+            radii=1e-4,
+            colors=AXIS_TEXT,
+            labels=tasks,
+            show_labels=True,
+        ),
+        static=True,
+    )
+
+
+def success_bars_view(grouped: dict[str, dict[str, list[EpisodeResult]]]) -> rrb.Spatial2DView:
+    """The 2-D view of `log_success_bars`, its bounds fixed to the chart."""
+    n = len(_tasks(grouped))
+    h = _chart_height(n)
+    return rrb.Spatial2DView(
+        name="success rate per task",
+        origin="/",
+        contents=["/success/**"],
+        visual_bounds=rrb.VisualBounds2D(x_range=[-1.05, n - 0.4], y_range=[-1.2 * h, 0.25 * h]),
+        background=(252, 252, 252),
+    )
 
 
 def overview_blueprint(
@@ -188,17 +286,12 @@ def overview_blueprint(
         links = [f"/agents/{agent}/{task}/links" for task in by_task]
         legend = agent == list(grouped)[-1]  # one legend, beside the last map
         maps.append(map_view(layout, name, [f"/agents/{agent}/**"], legend, links))
-    tasks = ", ".join(f"{i} {t}" for i, t in enumerate(_tasks(grouped)))
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Grid(*maps) if len(maps) > 1 else maps[0],
             rrb.Vertical(
                 rrb.TextDocumentView(name="success per task", contents="/summary"),
-                rrb.BarChartView(
-                    name=f"success rate (%) per task: {tasks}",
-                    contents="/success/**",
-                    plot_legend=rrb.PlotLegend(corner="RightTop"),
-                ),
+                success_bars_view(grouped),
             ),
             column_shares=[3, 2],
         ),

@@ -49,7 +49,9 @@ def maze_of_file(path: Path) -> str | None:
 _NOT_NPZ = "an OGBench dataset is a .npz: a zip of numpy arrays"
 
 
-def _load(path: Path) -> dict[str, np.ndarray]:
+def load_npz(path: Path) -> dict[str, np.ndarray]:
+    """The arrays of an OGBench `.npz` (never unpickled); a one-line `UserError` for a missing,
+    damaged or foreign file."""
     if not path.is_file():
         raise UserError(f"OGBench file {path} not found (set ingest.ogbench.path)")
     with path.open("rb") as f:
@@ -171,7 +173,9 @@ def _check_maze(positions: np.ndarray, where: str, spec: OGBenchMazeSpec) -> Non
         )
 
 
-def _episode_ends(terminals: np.ndarray, where: str) -> np.ndarray:
+def episode_ends(terminals: np.ndarray, where: str) -> np.ndarray:
+    """`[E]` end indices (exclusive) of the episodes `terminals [N]` marks; trailing steps
+    without a terminal are kept as a last episode (with a warning)."""
     ends = np.flatnonzero(np.asarray(terminals).reshape(-1) != 0) + 1
     n = len(terminals)
     if ends.size == 0 or ends[-1] != n:
@@ -225,12 +229,12 @@ def read_ogbench(
         files.append(val)
     loaded = []
     for f in files:
-        arrays = _load(f)
+        arrays = load_npz(f)
         if named is None:
             _check_unnamed(arrays, str(f), spec)
         _check_arrays(arrays, str(f), spec)
         _check_maze(np.asarray(arrays["observations"], np.float64)[:, :2], str(f), spec)
-        loaded.append((arrays, _episode_ends(arrays["terminals"], str(f))))
+        loaded.append((arrays, episode_ends(arrays["terminals"], str(f))))
     described = [
         {
             "path": str(f.resolve()),
