@@ -78,12 +78,14 @@ def model_config(cfg: TrainParams, segments: Segments) -> SkillModelConfig:
 
 
 def _fingerprint(cfg: TrainParams, segments_dir: Path, world_size: int) -> str:
-    """What a resumable state must match: training params (less budget), data, process count."""
+    """What a resumable state must match: training params (less budget), data, process count,
+    and the CPU arithmetic (a state made in another MKL mode would not end bit-identical)."""
     what = {
         "state_format": 2,  # 2: a best checkpoint per selection criterion (best/<criterion>/)
         "train": cfg.model_dump(exclude=_BUDGET_KEYS),
         "segments": json.loads((segments_dir / "segments.json").read_text()),
         "processes": world_size,
+        "cpu_math": cpu_math.mode(),
     }
     return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()
 

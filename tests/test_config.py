@@ -160,8 +160,9 @@ def test_runnable_others_sees_a_busy_process_and_not_this_ones_threads():
     assert devices._own_running() >= 1  # the reading thread itself
     busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
     try:
-        time.sleep(0.3)
-        assert devices.runnable_others(samples=10) >= 1
+        deadline = time.monotonic() + 30  # until the busy process is scheduled, not a fixed wait
+        while devices.runnable_others(samples=10) < 1:
+            assert time.monotonic() < deadline, "a busy process never counted as runnable"
     finally:
         busy.kill()
         busy.wait()
