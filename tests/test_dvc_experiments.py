@@ -11,6 +11,7 @@ whose outputs a later `dvc repro` restores from the shared run cache.
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import re
@@ -101,6 +102,7 @@ def test_each_run_reads_the_models_of_its_agent():
 NOT_RUN_YET: dict[str, tuple[tuple[str, ...], str]] = {}  # none today
 
 
+@functools.cache
 def _stale(pipeline: str) -> list[str]:
     """What in `pipeline`'s committed lock no longer matches: stages it lacks or holds besides
     the pipeline's, changed commands, params and code (DVC's status of each; data deps and outputs
