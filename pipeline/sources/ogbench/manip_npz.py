@@ -57,7 +57,7 @@ from pipeline.envs.manipspace import (
 from pipeline.errors import UserError
 from pipeline.io import atomic_path
 from pipeline.sources.common import Clock, missing, same_lengths, with_progress
-from pipeline.sources.ogbench.npz import episode_ends, load_npz, maze_of_file
+from pipeline.sources.ogbench.npz import episode_ends, load_npz, maze_of_file, with_val_file
 
 log = logging.getLogger(__name__)
 
@@ -250,10 +250,7 @@ def load_manipulation_files(
     env_id, dataset_type = _env_of(path, env_id)
     check_manipspace_id(env_id)
     spec = manipspace_spec(env_id)
-    files = [path]
-    val = path.with_name(path.stem + "-val.npz")
-    if include_val and val.is_file() and not path.stem.endswith("-val"):
-        files.append(val)
+    files = with_val_file(path, include_val)
     loaded = []
     for f in files:
         arrays = load_npz(f)

@@ -69,6 +69,7 @@ from pipeline.sources.ogbench.manip_npz import (
     manipulation_episodes,
     restore_errors,
 )
+from pipeline.sources.ogbench.npz import describe_files
 
 # The read-back check restores the recorded state every this many steps (and the last one).
 RESTORE_EVERY = 50
@@ -208,15 +209,7 @@ def _import(
     """OGBench's manipulation file(s) as a dataset (`manip_npz.py`)."""
     dataset_type, files, loaded = load_manipulation_files(path, env_id, include_val)
     spec = manipspace_spec(env_id)
-    described = [
-        {
-            "path": str(f.resolve()),
-            "steps": len(arrays["observations"]),
-            "episodes": len(ends),
-            "arrays": sorted(arrays),
-        }
-        for f, (arrays, ends) in zip(files, loaded, strict=True)
-    ]
+    described = describe_files(files, loaded)
     generator: dict[str, Any] = {
         "recipe": "OGBench data_gen_scripts/generate_manipspace.py",
         "dataset_type": dataset_type,

@@ -188,6 +188,29 @@ def episode_ends(terminals: np.ndarray, where: str) -> np.ndarray:
     return ends
 
 
+def with_val_file(path: Path, include_val: bool) -> list[Path]:
+    """`[path]`, and its OGBench `-val.npz` companion beside it when `include_val` and it exists."""
+    val = path.with_name(path.stem + "-val.npz")
+    if include_val and val.is_file() and not path.stem.endswith("-val"):
+        return [path, val]
+    return [path]
+
+
+def describe_files(
+    files: list[Path], loaded: list[tuple[dict[str, np.ndarray], np.ndarray]]
+) -> list[dict]:
+    """What the dataset's provenance says of each imported file: path, steps, episodes, arrays."""
+    return [
+        {
+            "path": str(f.resolve()),
+            "steps": len(arrays["observations"]),
+            "episodes": len(ends),
+            "arrays": sorted(arrays),
+        }
+        for f, (arrays, ends) in zip(files, loaded, strict=True)
+    ]
+
+
 def read_ogbench(
     path: str | Path,
     name: str,
@@ -223,10 +246,7 @@ def read_ogbench(
             "make them agree"
         )
     spec = ogbench_spec(env_id)
-    files = [path]
-    val = path.with_name(path.stem + "-val.npz")
-    if include_val and val.is_file() and not path.stem.endswith("-val"):
-        files.append(val)
+    files = with_val_file(path, include_val)
     loaded = []
     for f in files:
         arrays = load_npz(f)
@@ -235,15 +255,7 @@ def read_ogbench(
         _check_arrays(arrays, str(f), spec)
         _check_maze(np.asarray(arrays["observations"], np.float64)[:, :2], str(f), spec)
         loaded.append((arrays, episode_ends(arrays["terminals"], str(f))))
-    described = [
-        {
-            "path": str(f.resolve()),
-            "steps": len(a["observations"]),
-            "episodes": len(ends),
-            "arrays": sorted(a),
-        }
-        for f, (a, ends) in zip(files, loaded, strict=True)
-    ]
+    described = describe_files(files, loaded)
     with_qpos = all("qpos" in a and "qvel" in a for a, _ in loaded)
     generator = {
         "files": described,
