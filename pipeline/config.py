@@ -531,7 +531,7 @@ class ExpertAgentParams(_Section):
     )
 
 
-AGENTS = ("oposm", "llp", "gcbc", "expert")
+AGENTS = ("oposm", "oposm_sim", "llp", "gcbc", "expert")
 
 
 class DeployParams(_Section):
@@ -541,8 +541,10 @@ class DeployParams(_Section):
     agents: list[Literal[AGENTS]] = Field(  # type: ignore[valid-type]
         default_factory=lambda: ["oposm"],
         min_length=1,
-        description="Agents run on the same episodes: oposm (skill MPC), llp (low-level "
-        "planning: `oposm dynamics` + `oposm bc`), gcbc (`oposm gcbc`), expert (the data's).",
+        description="Agents run on the same episodes: oposm (skill MPC), oposm_sim (its "
+        "planner scoring each candidate in the simulator instead of the TAWM: an upper bound, "
+        "slow), llp (low-level planning: `oposm dynamics` + `oposm bc`), gcbc (`oposm gcbc`), "
+        "expert (the data's).",
     )
     tasks: list[Literal["corners", "random_goal", "goal", "ogbench"]] = Field(
         default_factory=lambda: ["random_goal", "corners"],

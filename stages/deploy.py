@@ -2,9 +2,11 @@
 or one of OGBench's manipulation envs, on its five object-goal tasks), on the same episodes;
 success rates, planning cost, recordings.
 
-Agents: `oposm` (skill MPC with the skill model, `data/models/<name>/`), `llp` (low-level planning
-with the single-step model `<name>-dynamics/` and the BC policy `<name>-bc/`), `gcbc` (the
-goal-conditioned policy `<name>-gcbc/`), `expert` (the scripted controller that made the data).
+Agents: `oposm` (skill MPC with the skill model, `data/models/<name>/`), `oposm_sim` (its CEM
+scored by executing each candidate in the simulator: the perfect-model bound), `llp` (low-level
+planning with the single-step model `<name>-dynamics/` and the BC policy `<name>-bc/`), `gcbc`
+(the goal-conditioned policy `<name>-gcbc/`), `expert` (the scripted controller that made the
+data).
 Every agent runs the same episodes (tasks, starts, goals, seeds) under the same step limit and
 success rule. Writes `data/reports/deploy/report.json` (one section per agent, and OPOSM vs LLP when
 both ran), `data/reports/deploy/episodes.json` (one row per agent and episode) and
@@ -57,6 +59,7 @@ from pipeline.planning.agents import Agent, ExpertAgent, PolicyAgent
 from pipeline.planning.llp import LowLevelMPC, LowLevelPlanner
 from pipeline.planning.mpc import SkillMPC
 from pipeline.planning.settings import llp_config, planner_config
+from pipeline.planning.simulated import SimulatedRollout, SimulatedSkillMPC, SimulatorPlanner
 from pipeline.planning.skills import SkillPlanner
 from pipeline.planning.subgoals import SubgoalGraph
 from pipeline.segments import Segments, load_segments
@@ -76,6 +79,7 @@ class AgentSetup:
     replan_every: int | None
     about: dict[str, Any] = field(default_factory=dict)
     plan_state_steps: int | None = None  # environment steps per predicted plan state
+    count_flops: bool = True  # the report counts a replan's matrix-product FLOPs
 
 
 def _check(meta: dict, segments: Segments, spec: EnvSpec, dims: tuple[int, int], what: str):
@@ -83,7 +87,9 @@ def _check(meta: dict, segments: Segments, spec: EnvSpec, dims: tuple[int, int],
     check_model_dims(*dims, spec, what)
 
 
-def _oposm(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, device) -> AgentSetup:
+def _skill_model(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, device):
+    """The skill model of `data/models/<name>/`, its metadata and folder, checked against the
+    segments and the environment."""
     cfg, name = params.deploy, params.ingest.name
     model_dir = paths.existing(paths.model(name))
     model, meta = load_model(model_dir, device=device)
@@ -99,6 +105,12 @@ def _oposm(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, devi
             f"deploy.planner.kernel: triton runs on a CUDA GPU, but deploy.device is "
             f"{device.type}; set deploy.planner.kernel=torch"
         )
+    return model, meta, model_dir
+
+
+def _oposm(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, device) -> AgentSetup:
+    cfg = params.deploy
+    model, meta, model_dir = _skill_model(params, paths, segments, spec, device)
     planner = SkillPlanner(model, planner_config(cfg.planner))
     subgoals = None
     if cfg.subgoals.enabled and isinstance(spec, ManipSpaceSpec):
@@ -206,7 +218,43 @@ def _expert(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, dev
     )
 
 
-BUILDERS = {"oposm": _oposm, "llp": _llp, "gcbc": _gcbc, "expert": _expert}
+def _oposm_sim(
+    params: Params, paths: Paths, segments: Segments, spec: EnvSpec, device
+) -> AgentSetup:
+    """OPOSM's CEM over the same skills, each candidate executed in a copy of the deploy
+    environment instead of predicted by the TAWM (`pipeline.planning.simulated`)."""
+    cfg = params.deploy
+    model, meta, model_dir = _skill_model(params, paths, segments, spec, device)
+    if cfg.subgoals.enabled:
+        raise UserError(
+            "agent oposm_sim plans to the goal itself: set deploy.subgoals.enabled=false"
+        )
+    config = planner_config(cfg.planner)
+    steps = skill_horizon(meta, model_dir)
+    rollout = SimulatedRollout(
+        model, spec, scale_mass(spec.model, cfg.mass_scale), config.cem.population, steps
+    )
+    agent = SimulatedSkillMPC(
+        model, SimulatorPlanner(model, config, rollout), cfg.sample_actions, spec.goal_dims,
+        None, getattr(spec, "fallen", None), getattr(spec, "goal_scale", None),
+    )  # fmt: skip
+    return AgentSetup(
+        agent,
+        cfg.replan_every or steps,
+        {
+            "model": str(model_dir),
+            "model_step": meta.get("step"),
+            "scored_in": "simulator",
+            **cfg.planner.model_dump(),
+        },  # fmt: skip
+        plan_state_steps=steps,
+        count_flops=False,  # the cost of a plan is simulator steps, not matrix products
+    )
+
+
+BUILDERS = {
+    "oposm": _oposm, "oposm_sim": _oposm_sim, "llp": _llp, "gcbc": _gcbc, "expert": _expert,
+}  # fmt: skip
 
 
 def build_agent(
@@ -329,6 +377,9 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
     n_envs = min(cfg.num_envs, cfg.episodes)
     pushes = Pushes.of_dataset(segments.info.generator)  # the data's, if it was pushed
     envs = BatchSim(spec, n_envs, [scale_mass(spec.model, cfg.mass_scale)] * n_envs, pushes)
+    for setup in setups.values():
+        if isinstance(setup.agent, SimulatedSkillMPC):
+            setup.agent.attach(envs)  # it plans from the episodes' exact physics states
     goal = None if cfg.goal is None else np.asarray(cfg.goal, dtype=np.float64)
     if isinstance(spec, ManipSpaceSpec):  # OGBench's five tasks from exact start states
         specs = manipulation_episodes(spec, cfg.tasks, cfg.episodes, cfg.seed)
@@ -358,7 +409,7 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
                 recorded += _record(done, cfg, spec, tmp, cfg.success_radius)
 
             flops = None
-            if setup.replan_every is not None:  # counted on the first episode's start and goal
+            if setup.replan_every is not None and setup.count_flops:  # on the first episode
                 first = next(iter(specs.values()))[0]
                 flops = replan_flops(setup.agent, first.start, first.goal, first.seed)
             agent_started = time.perf_counter()

@@ -358,3 +358,26 @@ def test_the_oracle_stage_writes_a_deploy_report_the_manipulation_report_reads(t
     assert report["max_steps"] == 200 and report["episodes_per_task"] == 1
     rows = {a["agent"]: a for a in collect(paths.root)["agents"]}
     assert rows["oracle"]["tasks"]["ogbench"]["successes"] == 5  # cube-single: every task
+
+
+@pytest.mark.slow
+def test_the_perfect_model_agent_deploys_and_its_plans_come_true(tiny_run):
+    """`oposm_sim` (CEM scored in the simulator) on the same episodes, mean actions: where
+    each plan said its first skill would end is where the episode was (float32 rounding)."""
+    from stages import deploy
+
+    params, paths, _, _ = tiny_run
+    run = Paths.for_run(paths.root, "oposm_sim")
+    sim_params = load_params(
+        ROOT / "params.yaml", [*TINY, "deploy.agents=[oposm_sim]", "deploy.sample_actions=false"]
+    )
+    report = deploy.run(sim_params, run, progress=False)
+    section = report["by_agent"]["oposm_sim"]
+    assert section["settings"]["scored_in"] == "simulator" and section["flops_per_replan"] is None
+    for task in (f"ogbench-task{k}" for k in range(1, 6)):
+        gap = section["optimism_gap"][task]
+        assert gap["replans"] == 1 and gap["position_error_m"]["mean"] < 1e-5
+    rows = json.loads((run.root / "reports/deploy/episodes.json").read_text())
+    assert len(rows) == 5 and all(r["error"] is None and r["replans"] == 2 for r in rows)
+    recordings = run.root / "recordings/deploy"
+    assert (recordings / "oposm_sim-ogbench-task1-0000.rrd").stat().st_size > 0
