@@ -659,11 +659,18 @@ def bench_train(
             "ratio of each to the first (e.g. float32,bfloat16); default: train.dtype."
         ),
     ] = None,
+    reference: Annotated[
+        bool,
+        typer.Option(
+            help="Also time the paper's EM step as its code runs it (bench/reference_em.py)."
+        ),
+    ] = True,
     params: ParamsOption = Path("params.yaml"),
     set_: SetOption = None,
     data: DataOption = Path("data"),
 ) -> None:
-    """EM (or VI) update steps/s and sub-trajectories/s at the train params' model size.
+    """EM (or VI) update steps/s and sub-trajectories/s at the train params' model size, beside
+    the paper's procedure (its code's EM step at the same sizes: `reference/*`).
 
     Needs the segments (`oposm segment`). Compare configs with -p params-paper.yaml, and
     precisions with --dtypes float32,bfloat16.
@@ -674,7 +681,7 @@ def bench_train(
 
     loaded = _load(params, set_)
     if dtypes is None:
-        _print_numbers(run(loaded, Paths(data), steps))
+        _print_numbers(run(loaded, Paths(data), steps, reference=reference))
         return
     from typing import get_args
 
@@ -686,7 +693,7 @@ def bench_train(
         raise UserError(
             f"--dtypes takes a comma-separated list of {' and '.join(allowed)}, got {dtypes!r}"
         )
-    _print_numbers(bench_train_dtypes(loaded, Paths(data), steps, names), width=36)
+    _print_numbers(bench_train_dtypes(loaded, Paths(data), steps, names, reference), width=36)
 
 
 @bench_app.command("plan")

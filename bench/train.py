@@ -1,7 +1,9 @@
 """Training benchmark (`oposm bench train`): EM (or VI) steps/s, sub-trajectories (windows)/s,
 FLOPs per step (the matrix products of forward and backward passes, counted by torch) and the
 achieved GFLOP/s against a matrix-multiply measurement of the same device in `train.dtype`
-(`bench/roofline.py`)."""
+(`bench/roofline.py`); beside them THE REFERENCE, the paper's EM step as its code runs it
+(`bench/reference_em.py`), timed the same way at the same sizes on the same windows
+(`reference/*`, and `speedup_over_reference`)."""
 
 from __future__ import annotations
 
@@ -12,6 +14,7 @@ import time
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
+from bench.reference_em import ReferenceEM
 from bench.roofline import roofline
 from pipeline.config import Params
 from pipeline.devices import auto_threads, resolve_device, torch_threads
@@ -31,9 +34,12 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize()
 
 
-def bench_train(params: Params, paths: Paths, steps: int, warmup: int = 5) -> dict[str, float]:
+def bench_train(
+    params: Params, paths: Paths, steps: int, warmup: int = 5, reference: bool = True
+) -> dict[str, float]:
     """Time `steps` update steps (after `warmup`) of `train.method` at the train params' model
-    size, on the segments of `ingest.name` (`oposm segment`), on `train.threads` CPU threads."""
+    size, on the segments of `ingest.name` (`oposm segment`), on `train.threads` CPU threads;
+    with `reference`, then the paper's procedure (`reference_em.ReferenceEM`) likewise."""
     cfg = params.train
     device = resolve_device(cfg.device, "train.device")
     segments = load_segments(paths.segments(params.ingest.name))
@@ -73,18 +79,53 @@ def bench_train(params: Params, paths: Paths, steps: int, warmup: int = 5) -> di
         }
         out |= roofline(device, cfg.hidden, getattr(torch, cfg.dtype))  # in train.dtype
         out["roofline_fraction"] = out["gflops"] / out["roofline_gflops"]
+        if reference:
+            ref = _time_reference(params, sampler, segments, device, steps, warmup)
+            ref["roofline_fraction"] = ref["gflops"] / out["roofline_gflops"]
+            out |= {f"reference/{k}": v for k, v in ref.items()}
+            out["speedup_over_reference"] = out["steps_per_s"] / ref["steps_per_s"]
     return out
 
 
+def _time_reference(
+    params: Params, sampler: WindowSampler, segments, device: torch.device, steps: int, warmup: int
+) -> dict[str, float]:
+    """The paper's EM step (`ReferenceEM`) at the train params' sizes and `train.dtype`, timed
+    as `bench_train` times the pipeline's."""
+    cfg = params.train
+    torch.manual_seed(cfg.seed)
+    info = segments.info
+    ref = ReferenceEM(info.state_dim, info.action_dim, cfg.z_dim, cfg.hidden, cfg.lr_m).to(device)
+    dtype = getattr(torch, cfg.dtype)
+    with FlopCounterMode(display=False) as counter:
+        ref.step(sampler.sample(cfg.batch_size), dtype)
+    for _ in range(warmup):
+        ref.step(sampler.sample(cfg.batch_size), dtype)
+    _sync(device)
+    start = time.perf_counter()
+    for _ in range(steps):
+        ref.step(sampler.sample(cfg.batch_size), dtype)
+    _sync(device)
+    elapsed = time.perf_counter() - start
+    flops = float(counter.get_total_flops())
+    return {
+        "steps_per_s": steps / elapsed,
+        "flops_per_step": flops,
+        "gflops": flops * steps / elapsed / 1e9,
+        "parameters": float(sum(p.numel() for p in ref.parameters())),
+    }
+
+
 def bench_train_dtypes(
-    params: Params, paths: Paths, steps: int, dtypes: list[str]
+    params: Params, paths: Paths, steps: int, dtypes: list[str], reference: bool = True
 ) -> dict[str, float]:
     """`bench_train` once per `train.dtype` in `dtypes`, in this process one after the other;
     each number prefixed with its dtype, and each dtype's steps/s over the first's."""
     out: dict[str, float] = {}
     for dtype in dtypes:
         train = params.train.model_copy(update={"dtype": dtype})
-        got = bench_train(params.model_copy(update={"train": train}), paths, steps)
+        got = bench_train(params.model_copy(update={"train": train}), paths, steps,
+                          reference=reference)  # fmt: skip
         out |= {f"{dtype}/{k}": v for k, v in got.items()}
     for dtype in dtypes[1:]:
         ratio = out[f"{dtype}/steps_per_s"] / out[f"{dtypes[0]}/steps_per_s"]

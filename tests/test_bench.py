@@ -89,6 +89,34 @@ def test_bench_train_times_steps_of_the_params_model_with_threads_auto(tmp_path)
     got = bench_train(params, paths, steps=3, warmup=1)
     assert got["windows_per_s"] == 8 * got["steps_per_s"] > 0
     assert got["flops_per_step"] > 0 and 0 < got["roofline_fraction"] < 1
+    # the paper's procedure beside it: a 4-layer encoder, so more products per step
+    assert got["reference/flops_per_step"] > got["flops_per_step"]
+    ratio = got["steps_per_s"] / got["reference/steps_per_s"]
+    assert got["speedup_over_reference"] == pytest.approx(ratio)
+
+
+def test_the_papers_em_step_learns_and_moves_only_what_each_half_updates():
+    """THE REFERENCE of `oposm bench train` (`bench/reference_em.py`) is a real EM step: on one
+    fixed batch its losses fall; the E-step moves the encoder only, the M-step the rest."""
+    from bench.reference_em import ReferenceEM
+    from pipeline.training.data import WindowBatch
+
+    torch.manual_seed(0)
+    batch = WindowBatch(torch.randn(8, 6, 4), torch.randn(8, 5, 2))
+    ref = ReferenceEM(4, 2, z_dim=3, hidden=16, lr=1e-2)
+    before = {n: p.detach().clone() for n, p in ref.named_parameters()}
+    ref.e_optimizer.step = lambda: None  # an M-step alone: the encoder must stay
+    ref.m_optimizer.step, m_step = (lambda: None), ref.m_optimizer.step
+    first = ref.step(batch)
+    assert all(torch.equal(p, before[n]) for n, p in ref.named_parameters())  # both stubbed
+    ref.m_optimizer.step = m_step
+    ref.step(batch)
+    moved = {n.split(".")[0] for n, p in ref.named_parameters() if not torch.equal(p, before[n])}
+    assert moved == {"prior", "policy", "tawm"}
+    del ref.e_optimizer.step  # the real E-step again
+    for _ in range(30):
+        last = ref.step(batch)
+    assert last["e_loss"] < first["e_loss"] and last["m_loss"] < first["m_loss"]
 
 
 def test_bench_train_times_each_dtype_and_their_ratio(tmp_path):
