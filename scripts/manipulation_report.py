@@ -7,8 +7,13 @@
         --notes experiments/manipulation/notes/cube-single-play.json \
         --lock experiments/manipulation/dvc.lock \
         --out results/manipulation/cube-single-play.json
-    # the page, results/manipulation.md + .json, from the datasets' reports:
-    python scripts/manipulation_report.py page results/manipulation/*.json --out results
+    # one dataset's ladder (where object moves fail), from its data root:
+    python scripts/manipulation_report.py ladder cube-double-play \
+        data/experiments/manipulation/cube-double-play \
+        --out results/manipulation/cube-double-play-ladder.json
+    # the page, results/manipulation.md + .json, from the datasets' reports and ladders:
+    python scripts/manipulation_report.py page results/manipulation/<dataset>.json ... \
+        --ladders results/manipulation/cube-double-play-ladder.json --out results
 """
 
 from __future__ import annotations
@@ -18,7 +23,7 @@ import sys
 from pathlib import Path
 
 from pipeline.errors import UserError
-from pipeline.reporting import manipulation
+from pipeline.reporting import manipulation, manipulation_ladder
 from pipeline.reporting.common import lock_commands, read, stamp
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -38,14 +43,26 @@ def _dataset(args: argparse.Namespace) -> None:
     print(f"wrote {args.out}")
 
 
-def _page(args: argparse.Namespace) -> None:
+def _ladder(args: argparse.Namespace) -> None:
+    report = manipulation_ladder.ladder_report(args.name, args.root, stamp(ROOT))
+    manipulation.write_dataset(args.out, report)
+    print(f"wrote {args.out}")
+
+
+def _read_all(paths: list[Path], stage: str) -> list:
     reports = []
-    for path in args.reports:
+    for path in paths:
         report = read(path)
         if report is None:
-            raise UserError(f"{path} does not exist; run its stage (dataset@<dataset>) first")
+            raise UserError(f"{path} does not exist; run its stage ({stage}@<dataset>) first")
         reports.append(report)
-    manipulation.write_page(args.out, manipulation.page(reports, stamp(ROOT)))
+    return reports
+
+
+def _page(args: argparse.Namespace) -> None:
+    reports = _read_all(args.reports, "dataset")
+    ladders = _read_all(args.ladders, "ladder")
+    manipulation.write_page(args.out, manipulation.page(reports, stamp(ROOT), ladders))
     print(f"wrote {args.out / 'manipulation.md'} and manipulation.json")
 
 
@@ -58,11 +75,17 @@ def main(argv: list[str] | None = None) -> None:
     one.add_argument("--notes", type=Path, help="JSON: a list of notes on its runs")
     one.add_argument("--lock", type=Path, help="the pipeline's dvc.lock: its commands listed")
     one.add_argument("--out", type=Path, required=True, help="the report's JSON file")
+    ladder = sub.add_parser("ladder", help="one dataset's ladder from its data root")
+    ladder.add_argument("name", help=f"one of {', '.join(manipulation.DATASETS)}")
+    ladder.add_argument("root", type=Path, help="its data root")
+    ladder.add_argument("--out", type=Path, required=True, help="the ladder's JSON file")
     page = sub.add_parser("page", help="results/manipulation.md + .json from the datasets' reports")
     page.add_argument("reports", type=Path, nargs="+", help="results/manipulation/<dataset>.json")
+    page.add_argument("--ladders", type=Path, nargs="*", default=[],
+                      help="results/manipulation/<dataset>-ladder.json")  # fmt: skip
     page.add_argument("--out", type=Path, default=ROOT / "results")
     args = parser.parse_args(argv)
-    (_dataset if args.command == "dataset" else _page)(args)
+    {"dataset": _dataset, "ladder": _ladder, "page": _page}[args.command](args)
 
 
 if __name__ == "__main__":

@@ -141,3 +141,79 @@ def test_a_corrupt_report_is_a_one_line_error_naming_it(tmp_path):
     assert result.returncode == 1 and "Traceback" not in result.stderr
     assert result.stderr.strip().count("\n") == 0 and str(bad) in result.stderr
     assert not (tmp_path / "results").exists()
+
+
+def _validate_with_ladder_rungs() -> dict:
+    skills = {
+        f"skills_{k}": {
+            "tawm_error_mean": 0.4 * k, "tawm_error_median": 0.3 * k,
+            "no_model_error_mean": 0.6, "no_model_error_median": 0.1,
+        } for k in (1, 2)
+    }  # fmt: skip
+    posterior = {
+        f"skills_{k}": {**skills[f"skills_{k}"], "replay_error_mean": 0.5 * k,
+                        "tawm_recorded_error_mean": 0.3 * k, "no_model_recorded_error_mean": 2.0 * k}
+        for k in (1, 2)
+    }  # fmt: skip
+    return {"prior": skills, "posterior": posterior, "skill_horizon": 20,
+            "position_unit": "observation units"}  # fmt: skip
+
+
+def _ladder_root(root: Path, sim: list[int], same: list[int], settings: dict) -> Path:
+    _dataset(root, [1, 0, 0, 0, 0], [0] * 5, [0] * 5)
+    _write(root, "reports/validate/report.json", _validate_with_ladder_rungs())
+    for run, agent, successes in (("oposm_sim", "oposm_sim", sim), ("oposm_ladder", "oposm", same)):
+        report = _deploy(agent, successes, n=10)
+        report["by_agent"][agent] |= {"settings": dict(settings), "replan_every": 20}
+        _write(root, f"runs/{run}/reports/deploy/report.json", report)
+    return root
+
+
+SEARCH = {"horizon": 3, "candidates": 32, "elites": 8, "iterations": 3}
+
+
+def test_the_ladder_reads_each_rung_and_judges_the_model_against_the_simulator(tmp_path):
+    from pipeline.reporting import manipulation_ladder as ladder
+
+    root = _ladder_root(tmp_path / "cd", [9, 6, 5, 4, 3], [2, 0, 0, 0, 0], SEARCH)
+    report = ladder.ladder_report("cube-double-play", root, {"commit": "abc"})
+    first = report["fidelity"][0]  # executed 0.5 of a 2.0 recorded move away: 75 % of it made
+    assert first["replay"] == 0.5 and first["reproduced"] == pytest.approx(0.75)
+    assert [r["tawm"] for r in report["open_loop"]] == [0.4, 0.8]
+    assert report["runs"]["sim"]["tasks"]["ogbench"]["successes"] == 27
+    assert report["runs"]["pipeline"]["tasks"]["ogbench"]["successes"] == 1  # the table's oposm
+    assert report["verdict"]["verdict"] == HOLDS  # 27 / 50 against 2 / 50
+    text = "\n".join(ladder.render_ladder(report, {HOLDS: "holds", FAILS: "no",
+                                                    INCONCLUSIVE: "?"}))  # fmt: skip
+    assert "(c) perfect model (`oposm_sim`) | 10 | 90 [60, 98]" in text
+    assert "Share of the recorded move the executed skills make: 75 %, 75 %" in text
+    assert "**holds**" in text
+
+
+def test_a_ladder_refuses_runs_that_are_not_comparable_or_missing(tmp_path):
+    from pipeline.reporting import manipulation_ladder as ladder
+
+    root = _ladder_root(tmp_path / "cd", [5] * 5, [5] * 5, SEARCH)
+    other = _deploy("oposm", [5] * 5, n=10)
+    other["by_agent"]["oposm"] |= {"settings": {**SEARCH, "candidates": 100}}
+    _write(root, "runs/oposm_ladder/reports/deploy/report.json", other)
+    with pytest.raises(UserError, match="differ in their search"):
+        ladder.ladder_report("cube-double-play", root, {})
+    shutil.rmtree(root / "runs/oposm_sim")
+    with pytest.raises(UserError, match="runs/oposm_sim: no oposm_sim deploy report"):
+        ladder.ladder_report("cube-double-play", root, {})
+
+
+def test_the_page_puts_a_ladder_in_its_datasets_section(tmp_path):
+    root = _ladder_root(tmp_path / "cd", [9, 6, 5, 4, 3], [2, 0, 0, 0, 0], SEARCH)
+    out = tmp_path / "results"
+    manipulation_report.main(["dataset", "cube-double-play", str(root), "--out",
+                              str(out / "cube-double-play.json")])  # fmt: skip
+    manipulation_report.main(["ladder", "cube-double-play", str(root), "--out",
+                              str(out / "cube-double-play-ladder.json")])  # fmt: skip
+    manipulation_report.main(["page", str(out / "cube-double-play.json"), "--ladders",
+                              str(out / "cube-double-play-ladder.json"), "--out", str(out)])  # fmt: skip
+    text = (out / "manipulation.md").read_text()
+    section = text[text.index("## cube-double-play") :]
+    assert "### Where object moves fail: the ladder" in section
+    assert json.loads((out / "manipulation.json").read_text())["ladders"]["cube-double-play"]

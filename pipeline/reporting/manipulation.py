@@ -48,6 +48,7 @@ from pipeline.reporting.common import (
     write_report,
 )
 from pipeline.reporting.common import write_page as write_results_page
+from pipeline.reporting.manipulation_ladder import render_ladder
 
 DATASETS = ("cube-single-play", "cube-double-play", "scene-play")
 TASKS = [f"ogbench-task{i}" for i in range(1, 6)]
@@ -246,6 +247,8 @@ def render(results: Mapping[str, Any]) -> str:
         else:
             lines += ["OGBench's five tasks: not deployed yet."]
         lines += ["", _published_line(name), ""]
+        if name in results.get("ladders", {}):
+            lines += render_ladder(results["ladders"][name], _WORDS)
         lines += [f"This dataset's report: `results/manipulation/{name}.json`, "
                   f"{stamp_text(data['stamp'])}. Its commands:", "", "```bash",
                   *data.get("commands", []), "```", ""]  # fmt: skip
@@ -277,12 +280,18 @@ def dataset_report(
             "verdicts": verdicts(name, data)}  # fmt: skip
 
 
-def page(reports: list[Mapping[str, Any]], stamp: Mapping[str, Any]) -> dict[str, Any]:
+def page(
+    reports: list[Mapping[str, Any]],
+    stamp: Mapping[str, Any],
+    ladders: list[Mapping[str, Any]] = (),
+) -> dict[str, Any]:
     """The page's JSON (stage `report`, `results/manipulation.json`) from the datasets' reports,
-    in `DATASETS`' order: the datasets, their verdicts, the flat runs, the published numbers."""
+    in `DATASETS`' order: the datasets, their verdicts, the flat runs, the published numbers,
+    and the datasets' ladders (`manipulation_ladder`) where there are some."""
     datasets = {r["dataset"]: dict(r)
                 for r in sorted(reports, key=lambda r: DATASETS.index(r["dataset"]))}  # fmt: skip
     return {
+        "ladders": {ladder["dataset"]: dict(ladder) for ladder in ladders},
         "what": "OPOSM, LLP and GCBC on OGBench's manipulation datasets, beside OGBench's "
         "published table",
         "stamp": dict(stamp),
