@@ -546,12 +546,14 @@ class DeployParams(_Section):
         "slow), llp (low-level planning: `oposm dynamics` + `oposm bc`), gcbc (`oposm gcbc`), "
         "expert (the data's).",
     )
-    tasks: list[Literal["corners", "random_goal", "goal", "ogbench"]] = Field(
+    tasks: list[Literal["corners", "random_goal", "goal", "ogbench", "kitchen"]] = Field(
         default_factory=lambda: ["random_goal", "corners"],
         min_length=1,
         description="corners: D4RL's opposite-corner task; random_goal: goals from training "
         "data, random start cell; goal: `goal` from random start cells; ogbench: an OGBench "
-        "maze's five evaluation tasks (`episodes` each, success_radius must be OGBench's).",
+        "maze's five evaluation tasks (`episodes` each, success_radius must be OGBench's); "
+        "kitchen: the Franka kitchen's D4RL task set (its four subtasks from the env's reset, "
+        "D4RL's score: subtasks completed / 4).",
     )
     episodes: int = Field(100, ge=1, description="Episodes per task.")
     goal: list[float] | None = Field(

@@ -1,6 +1,6 @@
 """Deploy stage: the agents of `deploy.agents` in the environment of the training data (a maze,
-or one of OGBench's manipulation envs, on its five object-goal tasks), on the same episodes;
-success rates, planning cost, recordings.
+one of OGBench's manipulation envs, on its five object-goal tasks, or the Franka kitchen, on its
+D4RL task set with D4RL's score), on the same episodes; success rates, planning cost, recordings.
 
 Agents: `oposm` (skill MPC with the skill model, `data/models/<name>/`), `oposm_sim` (its CEM
 scored by executing each candidate in the simulator: the perfect-model bound), `llp` (low-level
@@ -32,6 +32,7 @@ from pipeline.envs.ant_expert import load_actor
 from pipeline.envs.batch import BatchSim
 from pipeline.envs.disturbance import Pushes
 from pipeline.envs.expert import ExpertConfig
+from pipeline.envs.kitchen import KitchenSpec
 from pipeline.envs.manipspace import ManipSpaceSpec
 from pipeline.envs.ogbench import OGBenchMazeSpec
 from pipeline.envs.ogbench_oracle import POINT_NOISE, OGBenchOracleAgent
@@ -48,8 +49,10 @@ from pipeline.evaluation.tasks import (
     OGBENCH_PREFIX,
     EpisodeSpec,
     MazeTasks,
+    check_kitchen_tasks,
     check_manipulation_tasks,
     check_task,
+    kitchen_episodes,
     manipulation_episodes,
     train_locations,
 )
@@ -64,11 +67,15 @@ from pipeline.planning.skills import SkillPlanner
 from pipeline.planning.subgoals import SubgoalGraph
 from pipeline.segments import Segments, load_segments
 from pipeline.viz.deploy import recording_name, write_episode_recording
+from pipeline.viz.kitchen import write_kitchen_episode_recording
 from pipeline.viz.manip import write_manip_episode_recording, write_manip_overview
 from pipeline.viz.overview import write_overview
 from stages.report import report_files, split_timings, write_report, write_timings
 
 log = logging.getLogger(__name__)
+
+# Environments whose goals are object configurations, not places in a maze.
+OBJECT_GOALS = (ManipSpaceSpec, KitchenSpec)
 
 
 @dataclass
@@ -113,7 +120,7 @@ def _oposm(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, devi
     model, meta, model_dir = _skill_model(params, paths, segments, spec, device)
     planner = SkillPlanner(model, planner_config(cfg.planner))
     subgoals = None
-    if cfg.subgoals.enabled and isinstance(spec, ManipSpaceSpec):
+    if cfg.subgoals.enabled and isinstance(spec, OBJECT_GOALS):
         raise UserError(
             f"deploy.subgoals: the subgoal graph is a maze's (cells of the plane); {spec.env_id} "
             "plans to its object goals directly: set deploy.subgoals.enabled=false"
@@ -201,6 +208,11 @@ def _ogbench_oracle(params: Params, segments: Segments, spec: EnvSpec) -> AgentS
 
 
 def _expert(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, device) -> AgentSetup:
+    if isinstance(spec, KitchenSpec):
+        raise UserError(
+            f"no expert agent for {spec.env_id}: its data are human demonstrations, with no "
+            "controller to run; use oposm, llp or gcbc"
+        )
     if isinstance(spec, ManipSpaceSpec):
         raise UserError(
             f"no expert agent for {spec.env_id}: OGBench's manipulation oracles pursue the "
@@ -283,6 +295,8 @@ def _record(
         path = directory / f"{recording_name(r)}.rrd"
         if isinstance(spec, ManipSpaceSpec):
             write_manip_episode_recording(path, r, spec)
+        elif isinstance(spec, KitchenSpec):
+            write_kitchen_episode_recording(path, r, spec)
         else:
             write_episode_recording(path, r, spec, radius)
     return len(chosen)
@@ -371,6 +385,8 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
     spec = make_env_spec(segments.info.env_id, segments.info.env_kwargs)
     if isinstance(spec, ManipSpaceSpec):
         check_manipulation_tasks(spec.env_id, cfg.tasks)  # before any model is loaded
+    if isinstance(spec, KitchenSpec):
+        check_kitchen_tasks(spec.env_id, cfg.tasks)
     setups = {a: build_agent(a, params, paths, segments, spec, device) for a in cfg.agents}
 
     started = time.perf_counter()
@@ -383,6 +399,9 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
     goal = None if cfg.goal is None else np.asarray(cfg.goal, dtype=np.float64)
     if isinstance(spec, ManipSpaceSpec):  # OGBench's five tasks from exact start states
         specs = manipulation_episodes(spec, cfg.tasks, cfg.episodes, cfg.seed)
+    elif isinstance(spec, KitchenSpec):  # the D4RL task set from the env's reset state
+        task_set = (segments.info.generator or {}).get("kitchen_task_set")
+        specs = kitchen_episodes(spec, cfg.tasks, cfg.episodes, cfg.seed, task_set)
     else:
         locations = train_locations(segments, spec.goal_dims)
         tasks = MazeTasks(
@@ -426,7 +445,7 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
             }
             rows += [r.to_json() for task in specs for r in results[task]]
             episodes += [r for task in specs for r in results[task]]
-        if isinstance(spec, ManipSpaceSpec):
+        if isinstance(spec, OBJECT_GOALS):
             write_manip_overview(tmp / "overview.rrd", episodes, spec)
         else:
             write_overview(tmp / "overview.rrd", episodes, spec)
@@ -450,7 +469,7 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
             "recordings": str(recordings),
             "recorded_episodes": recorded,
         }
-        if isinstance(spec, ManipSpaceSpec):  # distances in success tolerances, not metres
+        if isinstance(spec, OBJECT_GOALS):  # distances in success tolerances, not metres
             report["distance_unit"] = GoalRule.of_spec(spec).unit
         if "oposm" in by_agent and "llp" in by_agent:
             report["oposm_vs_llp"] = compare_planners(report, "oposm", "llp")

@@ -6,7 +6,6 @@ physics, no mocks."""
 from __future__ import annotations
 
 import importlib.util
-import warnings
 
 import mujoco
 import numpy as np
@@ -334,7 +333,7 @@ def test_minari_dataset_imports(spec: KitchenSpec, minari_kitchen) -> None:
     info = imported.info
     assert info.env_id == "FrankaKitchen-v1" and info.env_kwargs["robot_noise_ratio"] == 0.0
     assert len(info.state_names) == 59 and len(info.action_names) == 9
-    assert info.control_period == 0.08 and info.physics_dim == 0 and imported.frames == 28
+    assert info.control_period == 0.08 and info.physics_dim == 89 and imported.frames == 28
     episodes = list(imported.episodes)
     assert [len(ep) for ep in episodes] == [12, 7, 9]
     data = mujoco.MjData(spec.model)
@@ -354,15 +353,25 @@ def test_minari_dataset_imports(spec: KitchenSpec, minari_kitchen) -> None:
     assert list(dataset.iterate_episodes())[0].truncations[-1]
 
 
-def test_minari_importer_needs_for_kitchen(minari_kitchen) -> None:
-    """What the importer does not know of the kitchen yet (update this with the importer): its
-    default goal key `desired_goal` is a dict of subtasks, and the env has no `dt` of its own
-    (it is `robot_env.dt`), so the control period must be given."""
+def test_minari_importer_reads_the_kitchen(spec: KitchenSpec, minari_kitchen) -> None:
+    """With the importer's defaults: the control period is the spec's, the goal is
+    `desired_goal`'s subtasks side by side (the spec's `goal_vector`), the task set is named,
+    the physics states are the recorded ones on the dataset clock (from the observation where
+    none are recorded: the same numbers but for the warm start, noise-free)."""
+    from pipeline.envs.kitchen import physics_from_observations
     from pipeline.sources import read_minari
 
-    with pytest.raises(UserError, match="goal key 'desired_goal' is a Dict"):
-        read_minari("kitchen", path=minari_kitchen, control_period=0.08)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        with pytest.raises(UserError, match="set ingest.minari.control_period"):
-            read_minari("kitchen", path=minari_kitchen, goal_key=None)
+    imported = read_minari("kitchen", path=minari_kitchen)
+    info = imported.info
+    assert info.control_period == spec.dt and info.goal_dim == len(spec.goal_dims)
+    assert info.generator["kitchen_task_set"] == "kitchen-all"
+    assert info.env_kwargs["tasks_to_complete"] == list(spec.subtasks)
+    goal = spec.goal_vector(spec.task("kitchen-all").goal)
+    time = 0.0
+    for ep in imported.episodes:
+        n = len(ep)
+        assert np.array_equal(ep.goals, np.tile(goal, (n, 1)))
+        assert np.allclose(ep.physics[:, 0], time + spec.dt * np.arange(n))
+        made = physics_from_observations(spec, ep.observations, ep.physics[:, 0])
+        np.testing.assert_array_equal(made[:, : 1 + 30 + 29], ep.physics[:, : 1 + 30 + 29])
+        time += spec.dt * n

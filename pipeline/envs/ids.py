@@ -31,8 +31,9 @@ OGBENCH_MAZES: dict[str, tuple[str, str]] = {
 MANIPSPACE_ENVS: tuple[str, ...] = ("cube-single-v0", "cube-double-v0", "scene-v0")
 
 # Evaluation task names (`pipeline.evaluation.tasks`). The position of a name is part of every
-# episode's seed, so the order is fixed; OGBench's task K is reported as `ogbench-taskK`.
-TASKS = ("corners", "random_goal", "goal", "ogbench")
+# episode's seed, so the order is fixed (new names go last); OGBench's task K is reported as
+# `ogbench-taskK`, the kitchen's task as its D4RL task set (`kitchen-mixed`, ...).
+TASKS = ("corners", "random_goal", "goal", "ogbench", "kitchen")
 OGBENCH_PREFIX = "ogbench-"
 
 # A maze grid cell, (row, col).

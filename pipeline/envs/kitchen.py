@@ -112,6 +112,12 @@ STATE_DIM = 59
 # 9 velocities coming before the objects' positions.
 OBJECT_OBS_OFFSET = ROBOT_DOF
 
+# The kettle's position (x, y, z of its free joint, m) in the observation: the one 3-D position an
+# observation holds (validate's recording draws it).
+KETTLE_POSITION_DIMS: tuple[int, ...] = tuple(
+    i + OBJECT_OBS_OFFSET for i in OBS_ELEMENT_INDICES["kettle"][:3]
+)
+
 # D4RL's kitchen task sets (the paper's kitchen-partial / -complete / -mixed), plus the env's
 # default set of all seven subtasks.
 KITCHEN_TASK_SETS: dict[str, tuple[str, ...]] = {
@@ -604,6 +610,78 @@ def kitchen_spec(env_kwargs: dict[str, Any] | None = None) -> KitchenSpec:
     if "tasks_to_complete" in kwargs:
         kwargs["tasks_to_complete"] = list(check_subtasks(kwargs["tasks_to_complete"]))
     return _kitchen_spec(json.dumps(kwargs, sort_keys=True))
+
+
+# --- datasets ----------------------------------------------------------------------------------
+
+
+def dataset_task_set(subtasks: Sequence[str], dataset_id: str = "") -> str:
+    """The D4RL task set (`KITCHEN_TASK_SETS`) of a dataset's subtasks; kitchen-partial and
+    kitchen-complete share theirs, so the dataset id decides between them (`D4RL/kitchen/
+    partial-v2`), else the first.
+
+    Raises:
+        UserError: the subtasks are no named task set (one line).
+    """
+    subtasks = check_subtasks(subtasks, f"kitchen dataset {dataset_id or ''}".strip())
+    names = [n for n, s in KITCHEN_TASK_SETS.items() if set(s) == set(subtasks)]
+    if not names:
+        known = "; ".join(f"{n}: {', '.join(s)}" for n, s in KITCHEN_TASK_SETS.items())
+        raise UserError(
+            f"kitchen dataset {dataset_id or '(no id)'}: subtasks {list(subtasks)} are no known "
+            f"task set ({known}); import a dataset of one of these"
+        )
+    wanted = [n for n in names if n.removeprefix("kitchen-") in dataset_id.lower()]
+    return (wanted or names)[0]
+
+
+def observation_names(spec: KitchenSpec) -> tuple[list[str], list[str]]:
+    """Names and units of the observation's 59 dims (the model's joints: robot qpos, robot qvel,
+    object qpos, object qvel; the kettle's free joint as x, y, z, qw, qx, qy, qz and its velocity
+    as vx, vy, vz, wx, wy, wz)."""
+    model = spec.model
+    qpos: list[tuple[int, str, str]] = []
+    qvel: list[tuple[int, str, str]] = []
+    for j in range(model.njnt):
+        name, kind = model.joint(j).name or f"joint{j}", int(model.jnt_type[j])
+        qadr, dadr = int(model.jnt_qposadr[j]), int(model.jnt_dofadr[j])
+        if kind == _FREE:
+            parts = [("x", "m"), ("y", "m"), ("z", "m"), ("qw", ""), ("qx", ""), ("qy", "")]
+            qpos += [(qadr + k, f"{name}_{a}", u) for k, (a, u) in enumerate([*parts, ("qz", "")])]
+            vel = [(f"v{a}", "m/s") for a in "xyz"] + [(f"w{a}", "rad/s") for a in "xyz"]
+            qvel += [(dadr + k, f"{name}_{a}", u) for k, (a, u) in enumerate(vel)]
+        elif kind in _HINGE_OR_SLIDE:
+            unit = "rad" if kind == int(mujoco.mjtJoint.mjJNT_HINGE) else "m"
+            qpos.append((qadr, name, unit))
+            qvel.append((dadr, f"{name}_vel", f"{unit}/s"))
+        else:
+            raise RuntimeError(f"{KITCHEN_ENV_ID}: unexpected ball joint {name}")
+    qpos.sort()
+    qvel.sort()
+    order = [*qpos[:ROBOT_DOF], *qvel[:ROBOT_DOF], *qpos[ROBOT_DOF:], *qvel[ROBOT_DOF:]]
+    if len(order) != STATE_DIM or len({n for _, n, _ in order}) != STATE_DIM:
+        raise RuntimeError(f"{KITCHEN_ENV_ID}: joints do not name the {STATE_DIM} observation dims")
+    return [n for _, n, _ in order], [u for _, _, u in order]
+
+
+def kitchen_action_names(spec: KitchenSpec) -> list[str]:
+    """The 9 actions: each robot joint's normalized velocity in [-1, 1] (`<joint>_vel`)."""
+    names, _ = observation_names(spec)
+    return names[ROBOT_DOF : 2 * ROBOT_DOF]
+
+
+def physics_from_observations(
+    spec: KitchenSpec, observations: np.ndarray, time: np.ndarray
+) -> np.ndarray:
+    """`[N, physics_dim]` states from noise-free observations `[N, 59]` (which hold all of qpos
+    and qvel) at `time [N]`, the solver's warm start zero (as after a reset): what data without
+    recorded states (D4RL's, whose observations are noisy) can give."""
+    obs = np.asarray(observations, dtype=np.float64)
+    nq = spec.model.nq
+    qpos = np.concatenate([obs[:, :ROBOT_DOF], obs[:, 2 * ROBOT_DOF : ROBOT_DOF + nq]], axis=1)
+    qvel = np.concatenate([obs[:, ROBOT_DOF : 2 * ROBOT_DOF], obs[:, ROBOT_DOF + nq :]], axis=1)
+    warm = np.zeros((len(obs), spec.model.nv))
+    return np.column_stack([np.asarray(time, dtype=np.float64), qpos, qvel, warm])
 
 
 # --- a Minari dataset --------------------------------------------------------------------------

@@ -5,7 +5,8 @@ checkpoint) by `make_env_spec`. It owns the nominal MuJoCo model and the per-env
 stepping: how an observation is read from and written into `MjData`, and one control step. The
 batched simulator (`pipeline.envs.batch.BatchSim`) runs any spec; a new environment family (e.g.
 OGBench point / ant mazes, `pipeline.envs.ogbench`; OGBench's manipulation,
-`pipeline.envs.manipspace`) is a new spec class, nothing else.
+`pipeline.envs.manipspace`; the Franka kitchen, `pipeline.envs.kitchen`) is a new spec class,
+nothing else.
 
 It also carries the facts that other modules would otherwise hard-code: the sizes of states,
 actions and recorded physics states, which state dimensions a goal refers to (`goal_dims`: x, y
@@ -25,6 +26,7 @@ import mujoco
 import numpy as np
 
 from pipeline.dataset import DatasetInfo
+from pipeline.envs.kitchen import KITCHEN_ENVS, is_kitchen, kitchen_spec
 from pipeline.envs.manipspace import MANIPSPACE_ENVS, is_manipspace, manipspace_spec
 from pipeline.envs.maze import (
     PHYSICS_SPEC,
@@ -40,7 +42,7 @@ from pipeline.envs.ogbench import OGBENCH_MAZES, OGBenchMazeSpec, is_ogbench_maz
 from pipeline.errors import UserError
 
 # Every env id `make_env_spec` builds a simulator for.
-SIMULATED_ENVS: tuple[str, ...] = (*SUPPORTED_ENVS, *OGBENCH_MAZES, *MANIPSPACE_ENVS)
+SIMULATED_ENVS: tuple[str, ...] = (*SUPPORTED_ENVS, *OGBENCH_MAZES, *MANIPSPACE_ENVS, *KITCHEN_ENVS)
 
 
 class EnvSpec(Protocol):
@@ -158,14 +160,17 @@ def make_env_spec(env_id: str, env_kwargs: dict[str, Any] | None = None) -> EnvS
     """The spec of a dataset's environment (`DatasetInfo.env_id`, `.env_kwargs`).
 
     gymnasium-robotics PointMazes (`PointMazeSpec`, `env_kwargs` may hold a custom `maze_map`),
-    OGBench's point and ant mazes (`pipeline.envs.ogbench`, no kwargs: their mazes are fixed) and
-    OGBench's manipulation envs (`pipeline.envs.manipspace`: cube-single, cube-double, scene).
+    OGBench's point and ant mazes (`pipeline.envs.ogbench`, no kwargs: their mazes are fixed),
+    OGBench's manipulation envs (`pipeline.envs.manipspace`: cube-single, cube-double, scene) and
+    gymnasium-robotics' Franka kitchen (`pipeline.envs.kitchen`: `env_kwargs` name its subtasks).
 
     Raises:
         UserError: no simulator for `env_id` (e.g. data imported from a real robot).
     """
     if is_manipspace(env_id):
         return manipspace_spec(env_id)
+    if is_kitchen(env_id):
+        return kitchen_spec(env_kwargs)
     if is_ogbench_maze(env_id) or env_id.endswith("maze-teleport-v0"):
         return OGBenchMazeSpec.create(env_id)  # teleport: the error says why not
     if env_id not in SUPPORTED_ENVS:

@@ -88,6 +88,8 @@ class EpisodeResult:
         plan_seconds: Wall time of its planning: its share of each batched call (call time /
             episodes planned together).
         error: What failed, or None.
+        subtasks_done: Per subtask of the goal (the kitchen: `GoalRule.subtasks`), the first
+            step (1-based) at which it was complete, or None; None for goals without subtasks.
         agent: The agent's name.
         trace: States, actions and plans.
     """
@@ -102,12 +104,20 @@ class EpisodeResult:
     replans: int = 0
     plan_seconds: float = 0.0
     error: str | None = None
+    subtasks_done: list[int | None] | None = None
     agent: str = ""
     trace: EpisodeTrace = field(default_factory=EpisodeTrace)
 
     @property
     def success(self) -> bool:
         return self.steps_to_goal is not None
+
+    @property
+    def score(self) -> float | None:
+        """D4RL's kitchen score: the share of the goal's subtasks completed during the episode;
+        None for goals without subtasks."""
+        done = self.subtasks_done
+        return None if done is None else sum(s is not None for s in done) / len(done)
 
     def to_json(self) -> dict:
         s = self.spec
@@ -129,6 +139,11 @@ class EpisodeResult:
             "replans": self.replans,
             "plan_seconds": self.plan_seconds,
             "error": self.error,
+            **(
+                {"subtasks_done": self.subtasks_done, "score": self.score}
+                if self.subtasks_done is not None
+                else {}
+            ),
         }
 
 
@@ -159,6 +174,10 @@ class _Wave:
             envs.reset(np.stack([s.start for s in specs]), rows)
         envs.seed_slots([s.seed for s in specs], rows)  # used when the env has pushes
         self.states = envs.observe(rows)
+        if self.rule.subtasks is not None:  # the kitchen: each subtask's first completion
+            k = self.rule.subtasks(self.states[:1], self.goals[:1]).shape[-1]
+            for r in self.results:  # the start is not judged (nor is it by the env)
+                r.subtasks_done = [None] * k
         self.alive = np.ones(len(specs), dtype=bool)
         for i in rows:
             self.results[i].trace.states.append(self.states[i].copy())
@@ -220,10 +239,18 @@ def _step(wave: _Wave, rows: np.ndarray, actions: np.ndarray, t: int, cfg: RunCo
         d = rule.distance(state, goal)
         result.final_distance = d
         result.min_distance = min(result.min_distance, d)
-        if result.steps_to_goal is None and rule.success(state, goal, d, cfg.success_radius):
-            result.steps_to_goal = t + 1
-        if result.steps_to_goal_gym is None and rule.success(state, goal, d, cfg.gym_radius):
-            result.steps_to_goal_gym = t + 1
+        if rule.subtasks is not None:  # every subtask complete at some step (D4RL's rule)
+            done = result.subtasks_done
+            for k, now in enumerate(rule.subtasks(state, goal)):
+                if now and done[k] is None:
+                    done[k] = t + 1
+            if result.steps_to_goal is None and all(s is not None for s in done):
+                result.steps_to_goal = result.steps_to_goal_gym = t + 1
+        else:
+            if result.steps_to_goal is None and rule.success(state, goal, d, cfg.success_radius):
+                result.steps_to_goal = t + 1
+            if result.steps_to_goal_gym is None and rule.success(state, goal, d, cfg.gym_radius):
+                result.steps_to_goal_gym = t + 1
         if result.steps_to_goal is not None and result.steps_to_goal_gym is not None:
             wave.alive[i] = False
 

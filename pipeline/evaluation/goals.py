@@ -8,7 +8,12 @@ from (dims and scale), so what a plan aims at and what the report counts agree:
 - OGBench's manipulation envs: the distance is over `(state[goal_dims] - goal) / goal_scale`
   (each dim in units of its success tolerance: 1 is "at the tolerance"), and success is
   OGBench's own rule (`ManipSpaceSpec.goal_reached`: every cube within 0.04 m of its goal, the
-  scene's buttons, drawer and window in their goal states), whatever the radius.
+  scene's buttons, drawer and window in their goal states), whatever the radius;
+- the Franka kitchen: the distance as in manipulation (each dim in units of the env's 0.3), and
+  success is D4RL's: a goal of several subtasks (`subtasks`: `KitchenSpec.subtasks_reached`,
+  each element within 0.3 of its goal) is reached once every subtask has been complete at some
+  step of the episode, not necessarily all at once (the env removes a completed subtask); the
+  episode's score is the share of its subtasks completed (`EpisodeResult.score`).
 """
 
 from __future__ import annotations
@@ -29,21 +34,26 @@ class GoalRule:
         scale: `[G]` divisors of each dim's difference, or None (raw units).
         reached: `(states [..., sd], goals [..., G]) -> bool [...]`, the environment's own
             success test; None: within the radius.
+        subtasks: `(states [..., sd], goals [..., G]) -> bool [..., K]`, each of a goal's K
+            subtasks complete (the kitchen); None: a goal is one thing. With it an episode
+            succeeds once each subtask has been complete at some step (module docstring).
     """
 
     dims: tuple[int, ...]
     scale: tuple[float, ...] | None = None
     reached: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
+    subtasks: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
 
     @classmethod
     def of_spec(cls, spec: Any) -> GoalRule:
-        """The rule of an `EnvSpec`: its `goal_dims`, and its `goal_scale` and `goal_reached`
-        where it has them (the manipulation envs)."""
+        """The rule of an `EnvSpec`: its `goal_dims`, and its `goal_scale`, `goal_reached` and
+        `subtasks_reached` where it has them (the manipulation envs, the kitchen)."""
         scale = getattr(spec, "goal_scale", None)
         return cls(
             tuple(spec.goal_dims),
             None if scale is None else tuple(scale),
             getattr(spec, "goal_reached", None),
+            getattr(spec, "subtasks_reached", None),
         )
 
     @property

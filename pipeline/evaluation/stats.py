@@ -65,6 +65,21 @@ def task_summary(results: list[EpisodeResult], dt: float, limits: Sequence[int] 
         "errors": sum(r.error is not None for r in results),
         "fallen": sum(r.fell_at is not None for r in results),
         "within_steps": {str(k): success_within(results, k) for k in limits},
+        **_score(results),
+    }
+
+
+def _score(results: list[EpisodeResult]) -> dict:
+    """D4RL's kitchen score where the goals have subtasks (`EpisodeResult.score`): the mean share
+    of subtasks completed per episode, and how many episodes completed each number of them."""
+    scores = [r.score for r in results if r.score is not None]
+    if not scores:
+        return {}
+    total = len(results[0].subtasks_done or [])
+    counts = [round(s * total) for s in scores]
+    return {
+        "score_mean": float(np.mean(scores)),
+        "subtasks_completed": {str(k): counts.count(k) for k in range(total + 1)},
     }
 
 

@@ -16,6 +16,9 @@
   OGBench's evaluation reset leaves (`ManipSpaceSpec.task_start`, seeded per episode), its goal
   is the task's object configuration at the spec's `goal_dims` (`goal_vector`). The maze tasks
   (corners, random_goal, goal) are refused there.
+- `kitchen`: the Franka kitchen's D4RL task set (`kitchen_episodes`): its four subtasks from the
+  env's reset state, exactly (`KitchenSpec.task_start`); reported under the task set's name
+  (`kitchen-mixed`, ...). Success and score are D4RL's (`pipeline.evaluation.goals`).
 
 Other starts are cell centres plus uniform noise of +- `start_noise` per axis (D4RL's reset
 noise: 0.1). Every start is at rest (`EnvSpec.start_observation`). Every episode has its own
@@ -31,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.envs.ids import OGBENCH_PREFIX, TASKS, layout_cell
+from pipeline.envs.kitchen import CUSTOM_TASK, KITCHEN_TASK_SETS, KitchenSpec
 from pipeline.envs.manipspace import ManipSpaceSpec
 from pipeline.envs.ogbench import TASK_NOISE, is_ogbench_maze, ogbench_tasks
 from pipeline.errors import UserError
@@ -191,6 +195,11 @@ class MazeTasks:
     def episodes(self, task: str, n: int) -> list[EpisodeSpec]:
         """The first `n` episodes of `task` (the same ones for any `n` that includes them)."""
         check_task(task)
+        if task == "kitchen":
+            raise UserError(
+                f"the kitchen task needs data in the Franka kitchen, but the data is in "
+                f"{self.env_id or 'a maze'}; use corners or random_goal"
+            )
         if task == "ogbench":
             return [s for specs in self.ogbench_episodes(n).values() for s in specs]
         if task == "random_goal" and len(self.locations) == 0:
@@ -227,11 +236,17 @@ MAZE_TASKS = ("corners", "random_goal", "goal")
 
 
 def check_manipulation_tasks(env_id: str, tasks: list[str]) -> None:
-    """A one-line `UserError` for a maze task (corners, random_goal, goal) in a manipulation env."""
+    """A one-line `UserError` for a maze task (corners, random_goal, goal) or the kitchen task in
+    a manipulation env."""
     maze_only = [t for t in tasks if t != "ogbench"]
     if maze_only:
+        what = (
+            "maze tasks (start cells, goal positions in a plane)"
+            if "kitchen" not in maze_only
+            else "not OGBench's tasks (the maze tasks need a maze, kitchen the Franka kitchen)"
+        )
         raise UserError(
-            f"deploy.tasks {maze_only}: maze tasks (start cells, goal positions in a plane); "
+            f"deploy.tasks {maze_only}: {what}; "
             f"{env_id} has OGBench's five object-goal tasks: set deploy.tasks=[ogbench]"
         )
 
@@ -272,3 +287,55 @@ def manipulation_episodes(
             )
         out[name] = episodes
     return out
+
+
+def check_kitchen_tasks(env_id: str, tasks: list[str]) -> None:
+    """A one-line `UserError` for any task but `kitchen` in the Franka kitchen."""
+    other = [t for t in tasks if t != "kitchen"]
+    if other:
+        raise UserError(
+            f"deploy.tasks {other}: not tasks of {env_id}, which is evaluated on its D4RL task "
+            "set: set deploy.tasks=[kitchen]"
+        )
+
+
+def kitchen_episodes(
+    spec: KitchenSpec, tasks: list[str], n: int, seed: int, task_set: str | None = None
+) -> dict[str, list[EpisodeSpec]]:
+    """`n` episodes of the kitchen's D4RL task set, `{task_set: [...]}`: each starts from the
+    env's reset state exactly (`KitchenSpec.task_start`; the reset is deterministic, the seed
+    drawn from (seed, "kitchen", k) is the episode's own: planner and action noise), its goal is
+    the set's subtasks' goals at the spec's `goal_dims`.
+
+    Args:
+        task_set: The name to report (the dataset's, `generator["kitchen_task_set"]`); default
+            the spec's first task set (kitchen-partial and kitchen-complete share subtasks).
+
+    Raises:
+        UserError: a task other than `kitchen`, or subtasks that are no D4RL task set.
+    """
+    check_kitchen_tasks(spec.env_id, tasks)
+    names = [t.name for t in spec.tasks() if t.name != CUSTOM_TASK]
+    if not names:
+        known = ", ".join(KITCHEN_TASK_SETS)
+        raise UserError(
+            f"the kitchen's subtasks {list(spec.subtasks)} are no known task set ({known}); "
+            "deploy evaluates a D4RL task set: train on a dataset of one of them"
+        )
+    name = task_set if task_set in names else names[0]
+    out = []
+    for k in range(n):
+        seq = np.random.SeedSequence([seed, TASKS.index("kitchen"), k])
+        episode_seed, reset_seed = (int(v) for v in seq.generate_state(2))
+        start = spec.task_start(name, reset_seed)
+        out.append(
+            EpisodeSpec(
+                task=name,
+                index=k,
+                start=start.observation,
+                goal=spec.goal_vector(start.goal),
+                seed=episode_seed,
+                physics=spec.cold(start.physics),
+            )
+        )
+    return {name: out}

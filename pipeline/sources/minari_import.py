@@ -10,13 +10,23 @@ When the dataset's environment spec is a PointMaze we simulate, the spec's id an
 map, ...) become `env_id` / `env_kwargs`, the state is named `x, y, vx, vy` and the full physics
 state `[time, qpos, qvel]` is taken from `infos["qpos"]` / `infos["qvel"]` when recorded, else
 from the observation, which for PointMaze is exactly qpos and qvel.
+
+gymnasium-robotics' Franka kitchen (`FrankaKitchen-v1`, D4RL's kitchen: Minari's
+`D4RL/kitchen/{complete,partial,mixed}-v2`) is simulated too (`pipeline.envs.kitchen`): its
+subtasks are the keys of the observations' `desired_goal` dict (else the env's
+`tasks_to_complete`) and must be one of D4RL's task sets, recorded as `env_kwargs
+["tasks_to_complete"]` and `generator["kitchen_task_set"]`; the goal is the `desired_goal` dict's
+subtask goals concatenated in the spec's order (its `goal_vector`); states and actions get the
+model's joint names; the physics state is `infos["physics"]` where recorded (the exact state,
+`write_kitchen_minari`), else made from the observation (qpos and qvel, warm start zero: exact
+only for noise-free data, which D4RL's are not).
 """
 
 from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +34,17 @@ import gymnasium as gym
 import numpy as np
 
 from pipeline.dataset import DatasetInfo, Episode
+from pipeline.envs.kitchen import (
+    STATE_DIM,
+    SUBTASKS,
+    check_subtasks,
+    dataset_task_set,
+    is_kitchen,
+    kitchen_action_names,
+    kitchen_spec,
+    observation_names,
+    physics_from_observations,
+)
 from pipeline.errors import UserError
 from pipeline.sources.common import (
     MAZE_ACTION_NAMES,
@@ -169,13 +190,15 @@ def read_minari(
         "ingest.minari.action_key",
     )
     obs_space = dataset.observation_space
+    env_id, env_kwargs, extras = _env(dataset)
     goal = None
-    if goal_key and isinstance(obs_space, gym.spaces.Dict):
+    if is_kitchen(env_id):
+        env_kwargs, goal = _kitchen(dataset, env_kwargs, extras, states, goal_key)
+    elif goal_key and isinstance(obs_space, gym.spaces.Dict):
         if goal_key in obs_space.spaces:
             goal = (goal_key, _box(obs_space[goal_key], f"goal key {goal_key!r}"))
         else:
             log.info("observations have no %r key; no goals imported", goal_key)
-    env_id, env_kwargs, extras = _env(dataset)
     info = _info(name, dataset, env_id, env_kwargs, extras, states, actions, goal, control_period)
     info.generator.update(
         dataset_id=dataset.id,
@@ -187,6 +210,48 @@ def read_minari(
     episodes = _episodes(dataset, info, states, actions, goal)
     frames = int(dataset.total_steps)
     return ImportedDataset(info, with_progress(episodes, frames, name, progress), frames)
+
+
+def _kitchen(
+    dataset: Any,
+    env_kwargs: dict[str, Any],
+    extras: dict[str, Any],
+    states: list[tuple[str, int]],
+    goal_key: str | None,
+) -> tuple[dict[str, Any], tuple[str, int] | None]:
+    """The kitchen's env kwargs (its subtasks as `tasks_to_complete`) and goal (`desired_goal`'s
+    subtasks, concatenated), its D4RL task set into `extras` (module docstring).
+
+    Raises:
+        UserError: the state is not the 59-dim `observation`, or the subtasks are no D4RL task
+            set.
+    """
+    if states != [("observation", STATE_DIM)]:
+        raise UserError(
+            f"{dataset.id}: the kitchen's state is its {STATE_DIM}-dim `observation` (qpos, "
+            f"qvel); set ingest.minari.state_keys=[observation] (got {[k for k, _ in states]})"
+        )
+    space = dataset.observation_space
+    desired = space.spaces.get("desired_goal") if isinstance(space, gym.spaces.Dict) else None
+    if isinstance(desired, gym.spaces.Dict):
+        subtasks = check_subtasks(list(desired.spaces), f"{dataset.id}: desired_goal")
+    else:
+        subtasks = check_subtasks(env_kwargs.get("tasks_to_complete", SUBTASKS))
+    extras["kitchen_task_set"] = dataset_task_set(subtasks, str(dataset.id))
+    extras["subtasks"] = list(subtasks)
+    kwargs = {**env_kwargs, "tasks_to_complete": list(subtasks)}
+    goal = None
+    if goal_key and isinstance(space, gym.spaces.Dict) and goal_key in space.spaces:
+        part = space[goal_key]
+        if isinstance(part, gym.spaces.Dict):
+            missing_tasks = [t for t in subtasks if t not in part.spaces]
+            if missing_tasks:
+                raise UserError(f"{dataset.id}: {goal_key} has no subtask(s) {missing_tasks}")
+            size = sum(_box(part[t], f"{goal_key}[{t!r}]") for t in subtasks)
+        else:
+            size = _box(part, f"goal key {goal_key!r}")
+        goal = (goal_key, size)
+    return kwargs, goal
 
 
 def _info(
@@ -218,6 +283,21 @@ def _info(
         state_names, state_units = MAZE_STATE_NAMES, MAZE_STATE_UNITS
         action_names, action_units = MAZE_ACTION_NAMES, MAZE_ACTION_UNITS
         physics_dim = meta["physics_dim"]
+    elif is_kitchen(env_id):
+        spec = kitchen_spec(env_kwargs)
+        if control_period is not None and abs(control_period - spec.dt) > 1e-12:
+            raise UserError(
+                f"{env_id} steps last {spec.dt} s (the simulator's dt), not {control_period}"
+            )
+        control_period = spec.dt
+        generator["physics_from"] = (
+            'infos["physics"] if recorded (exact), else the observation (qpos, qvel; warm '
+            "start zero)"
+        )
+        state_names, state_units = observation_names(spec)
+        action_names = kitchen_action_names(spec)
+        action_units = [""] * len(action_names)
+        physics_dim = spec.physics_dim
     else:
         control_period = _control_period(env_id, dataset, control_period)
         state_names = unique_names([(k or "obs", vector_names(k or "obs", n)) for k, n in states])
@@ -241,9 +321,12 @@ def _info(
     )
 
 
-def _part(values: Any, key: str, n: int) -> np.ndarray:
-    """The first n rows of one key of the episode's (possibly dict) values, as `[n, d]`."""
+def _part(values: Any, key: str, n: int, order: Sequence[str] = ()) -> np.ndarray:
+    """The first n rows of one key of the episode's (possibly dict) values, as `[n, d]`; a key
+    holding a dict of arrays gives those of `order`, side by side."""
     array = values[key] if key else values
+    if isinstance(array, dict):  # the kitchen's goals: one array per subtask, in `order`
+        array = np.concatenate([np.asarray(array[k])[:n].reshape(n, -1) for k in order], axis=1)
     return numeric(np.asarray(array)[:n].reshape(n, -1), key or "value")
 
 
@@ -255,6 +338,7 @@ def _episodes(
     goal: tuple[str, int] | None,
 ) -> Iterator[Episode]:
     clock = Clock(info.control_period)
+    subtasks = (info.generator or {}).get("subtasks", [])  # the kitchen's goal dict order
     for index, ep in enumerate(dataset.iterate_episodes()):
         first, act = states[0][0], actions[0][0]
         n = len(ep.actions[act] if act else ep.actions)
@@ -266,7 +350,9 @@ def _episodes(
         time = clock.next(n)
         obs = np.concatenate([_part(ep.observations, k, n) for k, _ in states], axis=1)
         physics = None
-        if info.physics_dim:
+        if info.physics_dim and is_kitchen(info.env_id):
+            physics = _kitchen_physics(ep, info, obs, time)
+        elif info.physics_dim:
             qpos, qvel = ep.infos.get("qpos"), ep.infos.get("qvel")
             if qpos is not None and qvel is not None:
                 physics = physics_state(time, np.asarray(qpos)[:n], np.asarray(qvel)[:n])
@@ -278,7 +364,25 @@ def _episodes(
             actions=_part(ep.actions, actions[0][0], n),
             time=time,
             physics=physics,
-            goals=_part(ep.observations, goal[0], n) if goal else None,
+            goals=_part(ep.observations, goal[0], n, subtasks) if goal else None,
             rewards=numeric(ep.rewards, "rewards", dims=1),
             terminals=np.asarray(ep.terminations, dtype=bool),
         )
+
+
+def _kitchen_physics(ep: Any, info: DatasetInfo, obs: np.ndarray, time: np.ndarray) -> np.ndarray:
+    """The kitchen's states `[n, physics_dim]`: `infos["physics"]` where recorded (with the
+    dataset clock's time), else made from the observations (module docstring)."""
+    n = len(obs)
+    recorded = ep.infos.get("physics") if isinstance(ep.infos, dict) else None
+    if recorded is None:
+        return physics_from_observations(kitchen_spec(info.env_kwargs), obs, time)
+    physics = np.array(recorded, dtype=np.float64)
+    if physics.ndim != 2 or physics.shape[0] < n or physics.shape[1] != info.physics_dim:
+        raise UserError(
+            f"Minari episode {ep.id}: infos['physics'] is {list(physics.shape)}, not "
+            f"[{n + 1}, {info.physics_dim}] (the kitchen's exact state per observation)"
+        )
+    physics = physics[:n]
+    physics[:, 0] = time
+    return physics
