@@ -290,7 +290,7 @@ def test_bad_deploy_inputs_are_one_line_errors(project, tmp_path):
     assert "outside the maze" in _one_line_error(runner.invoke(app, args))
     assert "no recordings" in _one_line_error(runner.invoke(app, ["view", str(tmp_path)]))
     line = _one_line_error(runner.invoke(app, ["deploy", *common, "-S", "deploy.agents=[llm]"]))
-    assert "deploy.agents" in line and "'oposm', 'llp', 'gcbc' or 'expert'" in line
+    assert "deploy.agents" in line and "'oposm', 'oposm_sim', 'llp', 'gcbc' or 'expert'" in line
     args = ["deploy", *common, "-S", "deploy.device=cpu", "-S", "deploy.planner.kernel=triton"]
     assert "deploy.planner.kernel=torch" in _one_line_error(runner.invoke(app, args))
     # A checkpoint whose states are not the maze's [x, y, vx, vy].
