@@ -1,105 +1,31 @@
-"""Every stage's `deps` in dvc.yaml cover the code it runs, so editing that code reruns it.
+"""Every stage's `deps` in the dvc.yaml files are the code it runs, generated from the import
+graph by scripts/dvc_deps.py (so editing that code reruns it, and nothing else does), and the
+script's `--record` re-expresses a lock's code entries without hiding a change."""
 
-The code a stage runs is `stages/<stage>.py` and every project module it imports, transitively
-(AST scan, lazy imports included; `from package import name` also counts `package/name.py`).
-"""
-
-import ast
+import importlib.util
+import os
+import subprocess
+import sys
+import textwrap
 from pathlib import Path
 
 import pytest
 import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("pipeline", "stages")
-# Plumbing that cannot change what a stage computes: not required in deps and not followed.
-# config.py: the params themselves are tracked by each stage's `params:` (and params.yaml equals
-# the config defaults, tests/test_config.py); its imports are for validating names.
-# readback.py: the checks of files read back, which pass a valid file's values on unchanged or
-# refuse the file.
-# cpu_math.py: MKL's reproducibility mode, which pipeline/__init__.py sets for every module; like
-# the locked torch and MKL versions (uv.lock) it is the environment a lock was made in, and the
-# README names it, rather than one stage's code.
-NOT_RESULTS = {
-    "pipeline/__init__.py",
-    "pipeline/cpu_math.py",
-    "stages/__init__.py",
-    "pipeline/errors.py",
-    "pipeline/paths.py",
-    "pipeline/io.py",
-    "pipeline/devices.py",
-    "pipeline/config.py",
-    "pipeline/readback.py",
-}
 
 
-def _module_file(name: str) -> Path | None:
-    parts = name.split(".")
-    if parts[0] not in PACKAGES:
-        return None
-    base = ROOT.joinpath(*parts)
-    for candidate in (base.with_suffix(".py"), base / "__init__.py"):
-        if candidate.exists():
-            return candidate
-    return None
+def _module():
+    spec = importlib.util.spec_from_file_location("dvc_deps", ROOT / "scripts/dvc_deps.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its dataclass looks its module up
+    spec.loader.exec_module(module)
+    return module
 
 
-def _imports(path: Path) -> set[Path]:
-    found: set[Path] = set()
-    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
-        names: list[str] = []
-        if isinstance(node, ast.Import):
-            names = [alias.name for alias in node.names]
-        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-            names = [node.module] + [f"{node.module}.{alias.name}" for alias in node.names]
-        for name in names:
-            parts = name.split(".")
-            for i in range(1, len(parts) + 1):  # importing a.b.c runs a/__init__, a/b/__init__
-                module = _module_file(".".join(parts[:i]))
-                if module is not None:
-                    found.add(module)
-    return found
+deps = _module()
 
-
-def _docstring_only(path: Path) -> bool:
-    return all(isinstance(n, ast.Expr) for n in ast.parse(path.read_text()).body)
-
-
-def code_of(stage_file: Path) -> set[Path]:
-    """The project files `stage_file` runs: itself and everything it imports, transitively."""
-    seen, todo = set(), [stage_file]
-    while todo:
-        path = todo.pop()
-        if (
-            path in seen
-            or path.relative_to(ROOT).as_posix() in NOT_RESULTS
-            or _docstring_only(path)
-        ):
-            continue
-        seen.add(path)
-        todo += _imports(path) - seen
-    return seen
-
-
-PIPELINES = (
-    "dvc.yaml",
-    "experiments/dvc.yaml",
-    "experiments/ogbench/dvc.yaml",
-    "experiments/antmaze/dvc.yaml",
-    "experiments/manipulation/dvc.yaml",
-)  # the main job, the paper's experiments, OGBench's point mazes, the ant mazes, manipulation
-
-
-def _stages() -> dict[str, dict]:
-    """`<dvc.yaml>:<stage>` -> the stage's definition (a foreach stage's `do` body)."""
-    stages = {}
-    for pipeline in PIPELINES:
-        for name, spec in yaml.safe_load((ROOT / pipeline).read_text())["stages"].items():
-            stages[f"{pipeline}:{name}"] = spec.get("do", spec)
-    return stages
-
-
-# Packages whose __init__ re-exports their core classes (listed in deps where used).
+# Packages whose __init__ re-exports their core classes (a stage that imports them runs them).
 REEXPORTING = {
     "pipeline/model/__init__.py",
     "pipeline/planning/__init__.py",
@@ -113,6 +39,8 @@ def test_package_inits_hold_no_code():
     """A package's __init__ runs on every import of its modules: keep them docstring-only, so
     a stage's code is the modules it names; pipeline/__init__.py only sets the CPU arithmetic
     mode (`cpu_math`) before any matrix product."""
+    import ast
+
     for init in [*ROOT.glob("pipeline/**/__init__.py"), ROOT / "stages/__init__.py"]:
         rel = init.relative_to(ROOT).as_posix()
         if rel in REEXPORTING:
@@ -122,38 +50,108 @@ def test_package_inits_hold_no_code():
             assert [type(n) for n in body] == [ast.ImportFrom], f"{rel} runs more than cpu_math"
             assert "cpu_math.set_default_environment()" in init.read_text()
             continue
-        assert _docstring_only(init), f"{rel} runs code on import"
+        assert deps.docstring_only(init), f"{rel} runs code on import"
 
 
-def test_the_scan_follows_imports_into_packages():
-    code = {p.relative_to(ROOT).as_posix() for p in code_of(ROOT / "stages/train.py")}
+def test_the_scan_follows_imports_into_packages_and_functions():
+    code = {deps.rel(p) for p in deps.code_of(ROOT / "stages/train.py")}
     assert {"stages/train.py", "pipeline/training/loop.py", "pipeline/model/__init__.py"} <= code
-
-
-def _entry_point(cmd: str) -> Path:
-    """The file a stage's command runs: `oposm <stage>` -> stages/<stage>.py, `python <script>`
-    -> the script."""
-    words = cmd.split()
-    if words[0] == "oposm":
-        return ROOT / "stages" / f"{words[1]}.py"
-    assert words[0] == "python" and words[1].endswith(".py"), f"unknown command: {cmd}"
-    return ROOT / words[1]
+    assert "pipeline/config.py" not in code  # plumbing: the params are the stage's `params:`
+    listed = deps.code_deps("oposm deploy")
+    assert listed[0] == "stages/deploy.py" and "pipeline/planning" in listed  # a folder
+    assert not any(p.startswith("pipeline/planning/") for p in listed)
 
 
 def test_the_entry_points_are_found():
-    stages = _stages()
-    assert _entry_point(stages["dvc.yaml:train"]["cmd"]) == ROOT / "stages/train.py"
-    report = _entry_point(stages["experiments/ogbench/dvc.yaml:report"]["cmd"])
-    assert report == ROOT / "scripts/ogbench_point_report.py"
+    assert deps.entry_point("oposm train -S x=1") == ROOT / "stages/train.py"
+    script = "python scripts/ogbench_point_report.py --x"
+    assert deps.entry_point(script) == ROOT / "scripts/ogbench_point_report.py"
+    with pytest.raises(ValueError, match="unknown command"):
+        deps.entry_point("bash run.sh")
 
 
-@pytest.mark.parametrize("stage", sorted(_stages()))
-def test_stage_deps_cover_the_code_it_runs(stage):
-    spec = _stages()[stage]
-    deps = [d if isinstance(d, str) else next(iter(d)) for d in spec["deps"]]
-    missing = []
-    for path in sorted(code_of(_entry_point(spec["cmd"]))):
-        rel = path.relative_to(ROOT).as_posix()
-        if not any(rel == d or rel.startswith(d.rstrip("/") + "/") for d in deps):
-            missing.append(rel)
-    assert not missing, f"{stage} runs code it does not list in deps: {missing}"
+@pytest.mark.parametrize("pipeline", deps.PIPELINES)
+def test_every_stage_lists_the_generated_code_deps(pipeline):
+    """`scripts/dvc_deps.py --check`: rewriting the file would change nothing."""
+    _, changed = deps.rewritten((ROOT / pipeline).read_text())
+    assert not changed, f"{pipeline}: run `uv run python scripts/dvc_deps.py` ({changed})"
+
+
+def test_a_missing_or_extra_code_entry_is_rewritten_and_data_entries_stay():
+    text = (ROOT / "dvc.yaml").read_text()
+    broken = text.replace("      - pipeline/segments.py\n", "", 1).replace(
+        "      - stages/train.py\n", "      - stages/train.py\n      - pipeline/extra.py\n", 1
+    )
+    fixed, changed = deps.rewritten(broken)
+    assert fixed == text and changed
+    assert "- data/segments/${ingest.name}" in fixed  # the data entry kept, before the code
+    assert yaml.safe_load(fixed)["stages"]["train"]["deps"][0] == "data/segments/${ingest.name}"
+
+
+def _run(repo: Path, *args: str) -> str:
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
+    env.pop("DVC_STAGE", None)
+    out = subprocess.run(args, cwd=repo, env=env, capture_output=True, text=True)
+    assert out.returncode == 0, out.stdout + out.stderr
+    return out.stdout + out.stderr
+
+
+def test_record_re_expresses_unchanged_code_and_keeps_a_change_stale(tmp_path):
+    """A lock listing a package's files, its dvc.yaml now the package's folder: `record` writes
+    the folder's hash when the files are as the lock recorded them (`dvc status` clean), and
+    leaves it stale when one changed."""
+    for case, edit in (("same", False), ("edited", True)):
+        repo = tmp_path / case
+        (repo / "pipeline/model").mkdir(parents=True)
+        (repo / "pipeline/model/a.py").write_text("A = 1\n")
+        (repo / "pipeline/model/b.py").write_text("B = 2\n")
+        stage = textwrap.dedent("""\
+            stages:
+              make:
+                cmd: echo made > out.txt
+                deps:
+                - pipeline/model/a.py
+                - pipeline/model/b.py
+                outs:
+                - out.txt
+            """)
+        (repo / "dvc.yaml").write_text(stage)
+        _run(repo, "git", "init", "-q")
+        _run(repo, sys.executable, "-m", "dvc", "init", "-q")
+        _run(repo, sys.executable, "-m", "dvc", "repro", "-q")
+        (repo / "dvc.yaml").write_text(
+            stage.replace("- pipeline/model/a.py\n    - pipeline/model/b.py", "- pipeline/model")
+        )
+        if edit:
+            (repo / "pipeline/model/b.py").write_text("B = 3\n")
+        done = deps.record("dvc.yaml", root=repo)
+        status = _run(repo, sys.executable, "-m", "dvc", "status")
+        lock = yaml.safe_load((repo / "dvc.lock").read_text())["stages"]["make"]["deps"]
+        if edit:
+            assert done[0] == "dvc.yaml:make: pipeline/model left stale (changed since the lock)"
+            assert "pipeline/model" in status
+            assert [e["path"] for e in lock] == ["pipeline/model/a.py", "pipeline/model/b.py"]
+        else:
+            assert "dvc.yaml:make: pipeline/model recorded (unchanged since the lock)" in done
+            assert "Data and pipelines are up to date" in status
+            assert [e["path"] for e in lock] == ["pipeline/model"]
+
+
+def test_bytecode_caches_are_not_inputs(tmp_path):
+    """Python writes `__pycache__/` beside the code a stage imports (where
+    PYTHONDONTWRITEBYTECODE is not set): the repository's .dvcignore keeps it out of a code
+    folder's hash, so a fresh clone's second `dvc repro` reruns nothing."""
+    repo = tmp_path / "repo"
+    (repo / "pipeline/model").mkdir(parents=True)
+    (repo / "pipeline/model/a.py").write_text("A = 1\n")
+    (repo / ".dvcignore").write_text((ROOT / ".dvcignore").read_text())
+    stage = "stages:\n  make:\n    cmd: echo made > out.txt\n    deps:\n    - pipeline/model\n"
+    (repo / "dvc.yaml").write_text(stage + "    outs:\n    - out.txt\n")
+    _run(repo, "git", "init", "-q")
+    _run(repo, sys.executable, "-m", "dvc", "init", "-q")
+    _run(repo, sys.executable, "-m", "dvc", "repro", "-q")
+    (repo / "pipeline/model/__pycache__").mkdir()
+    (repo / "pipeline/model/__pycache__/a.cpython-312.pyc").write_bytes(b"\x00bytecode")
+    assert "Data and pipelines are up to date" in _run(repo, sys.executable, "-m", "dvc", "status")
+    (repo / "pipeline/model/b.py").write_text("B = 2\n")  # a real change still shows
+    assert "pipeline/model" in _run(repo, sys.executable, "-m", "dvc", "status")
