@@ -353,8 +353,12 @@ def test_the_oracle_stage_writes_a_deploy_report_the_manipulation_report_reads(t
     from stages import oracle
 
     params, paths, _, _ = tiny_run
-    report = oracle.run(params, Paths.for_run(paths.root, "oracle"))
+    run = Paths.for_run(paths.root, "oracle")
+    report = oracle.run(params, run)
     assert report["tasks"] == [*(f"ogbench-task{k}" for k in range(1, 6)), "ogbench"]
+    written = json.loads(run.report("deploy").read_text())  # no clock: the same bytes every run
+    assert "wall_s" not in written and "wall_s" not in written["by_agent"]["oracle"]
+    assert json.loads(run.timings("deploy").read_text())["wall_s"] == report["wall_s"]
     assert report["max_steps"] == 200 and report["episodes_per_task"] == 1
     rows = {a["agent"]: a for a in collect(paths.root)["agents"]}
     assert rows["oracle"]["tasks"]["ogbench"]["successes"] == 5  # cube-single: every task

@@ -152,7 +152,8 @@ def _validate_with_ladder_rungs() -> dict:
     }  # fmt: skip
     posterior = {
         f"skills_{k}": {**skills[f"skills_{k}"], "replay_error_mean": 0.5 * k,
-                        "tawm_recorded_error_mean": 0.3 * k, "no_model_recorded_error_mean": 2.0 * k}
+                        "tawm_recorded_error_mean": 0.3 * k,
+                        "no_model_recorded_error_mean": 2.0 * k}
         for k in (1, 2)
     }  # fmt: skip
     return {"prior": skills, "posterior": posterior, "skill_horizon": 20,
@@ -212,7 +213,8 @@ def test_the_page_puts_a_ladder_in_its_datasets_section(tmp_path):
     manipulation_report.main(["ladder", "cube-double-play", str(root), "--out",
                               str(out / "cube-double-play-ladder.json")])  # fmt: skip
     manipulation_report.main(["page", str(out / "cube-double-play.json"), "--ladders",
-                              str(out / "cube-double-play-ladder.json"), "--out", str(out)])  # fmt: skip
+                              str(out / "cube-double-play-ladder.json"),
+                              "--out", str(out)])  # fmt: skip
     text = (out / "manipulation.md").read_text()
     section = text[text.index("## cube-double-play") :]
     assert "### Where object moves fail: the ladder" in section
