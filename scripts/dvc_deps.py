@@ -192,16 +192,6 @@ def rewritten(text: str) -> tuple[str, list[str]]:
     return "\n".join(lines) + "\n", sorted(changed)
 
 
-def declared_code(text: str) -> dict[str, set[str]]:
-    """Each stage's code entries as `text` lists them."""
-    stages = yaml.safe_load(text)["stages"]
-    lines = text.splitlines()
-    return {
-        b.stage: {_entry(x) for x in lines[b.start : b.end] if is_code(_entry(x))}
-        for b in deps_blocks(text, stages)
-    }
-
-
 # --- the locks: new entries that cover unchanged code ---------------------------------------------
 
 
