@@ -403,6 +403,16 @@ _stage_command(
     """,
 )
 _stage_command(
+    "value",
+    """Fit a goal-conditioned value V(s, g): the steps to a goal, for OPOSM's planning cost.
+
+    Implicit value learning (GCIVL, OGBench's recipe: expectile regression, hindsight goals, the
+    environment's success rule) on the train split; writes data/models/<ingest.name>-value/ and
+    data/reports/value/report.json (held-out steps to go against the recorded ones). Used by
+    `oposm deploy` when `value.weight > 0`; not part of the paper's method.
+    """,
+)
+_stage_command(
     "validate",
     """Check the world model against held-out data, and open loop in MuJoCo (paper §4.1, fig. 4).
 

@@ -380,6 +380,57 @@ class GCBCParams(PolicyParams):
     )
 
 
+class ValueParams(_Section):
+    """`oposm value`: a goal-conditioned value V(s, g) learned offline (GCIVL: OGBench's implicit
+    value learning, its defaults `impls/agents/gcivl.py` except the width and steps, sized for a
+    CPU), and its use by OPOSM's planner (`weight`). Not in the paper: with `weight` 0 (the
+    default) the planner's cost is the paper's and the value is not loaded."""
+
+    weight: float = Field(
+        0.0,
+        ge=0,
+        description="Goal units the planner's cost adds per skill still to go after each "
+        "predicted state (the value's steps to go / T, plus the skills used): 0: the paper's "
+        "cost, no value needed; > 0: run `oposm value` first.",
+    )
+    hidden: int = Field(256, ge=1, description="Width of every hidden layer (OGBench: 512).")
+    layers: int = Field(3, ge=1, description="Hidden layers per head (OGBench: 3).")
+    heads: int = Field(2, ge=1, description="Independent value heads (OGBench: 2).")
+    discount: float = Field(0.99, gt=0, lt=1, description="Discount (OGBench: 0.99).")
+    expectile: float = Field(
+        0.9, gt=0, lt=1, description="Expectile of the in-sample maximum (OGBench: 0.9)."
+    )
+    tau: float = Field(0.005, gt=0, le=1, description="Target network's Polyak rate.")
+    p_current: float = Field(
+        0.2, ge=0, le=1, description="Share of goals that are the step itself (OGBench: 0.2)."
+    )
+    p_trajectory: float = Field(
+        0.5,
+        ge=0,
+        le=1,
+        description="Share of goals a geometric number of steps later in the same episode "
+        "(OGBench: 0.5); the rest are random train steps.",
+    )
+    batch_size: int = Field(256, ge=1, description="Transitions per Adam step (OGBench: 1024).")
+    lr: float = Field(3e-4, gt=0, description="Adam learning rate (OGBench: 3e-4).")
+    max_steps: int = Field(20000, ge=1, description="Adam steps (OGBench: 1M).")
+    eval_every: int = Field(2000, ge=1, description="Steps between validations.")
+    val_transitions: int = Field(2000, ge=1, description="Validation transitions (fixed).")
+    eval_horizon: int = Field(
+        200, ge=1, description="Validation goals lie 1 to this many steps ahead."
+    )
+    seed: int = Field(0, description="Seed of initialization, sampling and goals.")
+    device: Literal["auto", "cpu", "cuda"] = Field(
+        "auto", description="auto: CUDA when available, else CPU."
+    )
+
+    @model_validator(mode="after")
+    def _shares(self) -> ValueParams:
+        if self.p_current + self.p_trajectory > 1:
+            raise ValueError("p_current + p_trajectory must be <= 1")
+        return self
+
+
 class ValidateParams(_Section):
     """`oposm validate`: TAWM vs single-step model on held-out open-loop rollouts (paper §4.1)."""
 
@@ -629,6 +680,7 @@ class Params(_Section):
     dynamics: DynamicsParams = Field(default_factory=DynamicsParams)
     bc: BCParams = Field(default_factory=BCParams)
     gcbc: GCBCParams = Field(default_factory=GCBCParams)
+    value: ValueParams = Field(default_factory=ValueParams)
     validation: ValidateParams = Field(default_factory=ValidateParams, alias="validate")
     deploy: DeployParams = Field(default_factory=DeployParams)
 

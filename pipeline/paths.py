@@ -71,6 +71,10 @@ class Paths:
         """A behaviour-cloning policy `data/models/<name>-<kind>/` (`kind`: bc | gcbc)."""
         return self.root / "models" / f"{name}-{kind}"
 
+    def value(self, name: str) -> Path:
+        """The goal-conditioned value `data/models/<name>-value/` (`oposm value`)."""
+        return self.root / "models" / f"{name}-value"
+
     def scratch(self, stage: str, key: str) -> Path:
         """Resumable work of a stage, keyed by what it computes: `data/scratch/<stage>/<key>/`.
 

@@ -66,6 +66,7 @@ from pipeline.planning.simulated import SimulatedRollout, SimulatedSkillMPC, Sim
 from pipeline.planning.skills import SkillPlanner
 from pipeline.planning.subgoals import SubgoalGraph
 from pipeline.segments import Segments, load_segments
+from pipeline.value.network import load_value
 from pipeline.viz.deploy import recording_name, write_episode_recording
 from pipeline.viz.kitchen import write_kitchen_episode_recording
 from pipeline.viz.manip import write_manip_episode_recording, write_manip_overview
@@ -133,6 +134,8 @@ def _oposm(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, devi
         log.info("subgoal graph: %d nodes (cells of %g m), reach %d skills%s",
                  len(subgoals.nodes), sub.cell, sub.reach,
                  ", line of sight" if sub.line_of_sight else "")  # fmt: skip
+    skill_steps = skill_horizon(meta, model_dir)
+    value, value_info = _value(params, paths, segments, spec, device, skill_steps)
     return AgentSetup(
         SkillMPC(
             model,
@@ -142,12 +145,34 @@ def _oposm(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, devi
             subgoals,
             getattr(spec, "fallen", None),
             getattr(spec, "goal_scale", None),
+            value,
         ),  # fmt: skip
         cfg.replan_every or skill_horizon(meta, model_dir),
         {"model": str(model_dir), "model_step": meta.get("step"), **cfg.planner.model_dump()}
-        | ({f"subgoals_{k}": v for k, v in cfg.subgoals.model_dump().items()} if subgoals else {}),
+        | ({f"subgoals_{k}": v for k, v in cfg.subgoals.model_dump().items()} if subgoals else {})
+        | value_info,
         plan_state_steps=skill_horizon(meta, model_dir),  # a skill
     )
+
+
+def _value(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, device, skill_steps):
+    """The learned steps-to-go for the planner's cost (`value.weight > 0`), with what the
+    report says of it; (None, {}) for the paper's cost."""
+    weight = params.value.weight
+    if not weight:
+        return None, {}
+    value_dir = paths.existing(paths.value(params.ingest.name))
+    value, meta = load_value(value_dir, device=device)
+    c = value.config
+    what = f"the value in {value_dir}"
+    _check(meta, segments, spec, (c.state_dim, segments.info.action_dim), what)
+    if c.goal_dims != tuple(spec.goal_dims):
+        raise UserError(
+            f"the value in {value_dir} takes goals in state dims {list(c.goal_dims)}, "
+            f"{spec.env_id} gives {list(spec.goal_dims)}; re-run `oposm value`"
+        )
+    info = {"value": str(value_dir), "value_weight": weight, "value_skill_steps": skill_steps}
+    return (value.steps_to_go, weight, skill_steps), info
 
 
 def _llp(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, device) -> AgentSetup:

@@ -53,7 +53,9 @@ def test_validate_section_keeps_its_name_without_shadowing_pydantic(tmp_path):
     assert "validate" not in Params.model_fields  # a field of that name shadows BaseModel.validate
     with pytest.raises(UserError, match=r"unknown key 'validate\.startz'.*particles"):
         load_params(_write(tmp_path, "validate:\n  startz: 3\n"))
-    with pytest.raises(UserError, match="valid keys here: .*dynamics, bc, gcbc, validate, deploy"):
+    with pytest.raises(
+        UserError, match="valid keys here: .*dynamics, bc, gcbc, value, validate, deploy"
+    ):
         load_params(_write(tmp_path, "valdate: {}\n"))
 
 

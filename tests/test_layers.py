@@ -61,7 +61,7 @@ FLOORS: tuple[tuple[str, ...], ...] = (
     ("segments", "recording", "envs"),
     ("model", "sources", "expert_config"),
     ("planning", "training"),
-    ("evaluation",),
+    ("evaluation", "value"),
     ("reporting", "viz", "analysis"),
 )
 FLOOR = {part: level for level, parts in enumerate(FLOORS) for part in parts}

@@ -385,3 +385,31 @@ def test_the_perfect_model_agent_deploys_and_its_plans_come_true(tiny_run):
     assert len(rows) == 5 and all(r["error"] is None and r["replans"] == 2 for r in rows)
     recordings = run.root / "recordings/deploy"
     assert (recordings / "oposm_sim-ogbench-task1-0000.rrd").stat().st_size > 0
+
+
+@pytest.mark.slow
+def test_oposm_plans_with_a_learned_value_once_oposm_value_has_run(tiny_run):
+    """`value.weight > 0`: refused in one line until `oposm value` has written the value; then
+    OPOSM's plans are scored with it on the same episodes, and the report says so."""
+    from stages import deploy, value
+
+    params, paths, _, _ = tiny_run
+    weighted = load_params(
+        ROOT / "params.yaml",
+        [*TINY, "deploy.agents=[oposm]", "value.weight=0.5", "value.max_steps=4",
+         "value.eval_every=2", "value.hidden=16", "value.val_transitions=8",
+         "value.eval_horizon=10"],
+    )  # fmt: skip
+    run = Paths.for_run(paths.root, "valued")
+    assert "run `oposm value` first" in one_line_error(
+        lambda: deploy.run(weighted, run, progress=False)
+    )
+    fitted = value.run(weighted, paths)
+    assert fitted["steps"] == 4 and len(fitted["history"]) == 2
+    headline = json.loads(paths.metrics("value").read_text())
+    assert set(headline) == {"val_steps_to_go_mae", "val_steps_to_go_spearman", "val_td_loss"}
+    report = deploy.run(weighted, run, progress=False)
+    settings = report["by_agent"]["oposm"]["settings"]
+    assert settings["value_weight"] == 0.5 and settings["value_skill_steps"] == 5
+    rows = json.loads((run.root / "reports/deploy/episodes.json").read_text())
+    assert len(rows) == 5 and all(r["error"] is None and r["replans"] == 2 for r in rows)

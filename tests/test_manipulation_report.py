@@ -84,6 +84,20 @@ def test_collect_orders_agents_and_judges_each_claim(tmp_path):
     assert manipulation.verdicts("scene-play", manipulation.collect(tmp_path / "none")) == []
 
 
+def test_a_run_with_a_learned_value_is_its_own_row_judged_against_the_paper_cost(tmp_path):
+    root = _dataset(tmp_path / "cd", [10, 0, 0, 0, 0], [0] * 5, [0] * 5)
+    _write(root, "runs/oposm_value/reports/deploy/report.json", _deploy("oposm", [40] * 5))
+    data = manipulation.collect(root)
+    assert [a["agent"] for a in data["agents"]] == ["oposm", "oposm + value", "llp", "gcbc"]
+    checks = {c["claim"].split(" on ")[0]: c for c in manipulation.verdicts("cube-double-play",
+                                                                            data)}  # fmt: skip
+    value = "OPOSM with a learned value (`value.weight`, not the paper's)"
+    assert checks[f"{value} is above every published method"]["verdict"] == HOLDS  # 80 vs 40
+    against = checks[f"{value} reaches the goal more often than OPOSM with the paper's cost"]
+    assert against["verdict"] == HOLDS and against["interval"][0] > 0.6
+    assert checks["OPOSM is above every published method"]["verdict"] == FAILS
+
+
 def test_script_writes_each_datasets_report_then_the_page_from_them(tmp_path):
     """`dataset`: a dataset's report from its data root; `page`: results/manipulation.* from the
     reports alone (a data root gone since stays on the page)."""

@@ -69,12 +69,7 @@ class GoalCost:
 
     def __call__(self, states: torch.Tensor) -> torch.Tensor:
         """Predicted `states [B, K, L + 1, sd]` (0: s_0) of the B problems -> `[B, K]`."""
-        reached = _select(states[:, :, 1:], self.dims)  # [B, K, L, G]
-        goal = self.goals[:, None, None, :]  # [B, 1, 1, G]
-        residual = reached - goal
-        if self.scale is not None:
-            residual = residual / self.scale
-        distance = torch.linalg.vector_norm(residual, dim=-1)  # [B, K, L]
+        distance = self.per_skill(states)  # [B, K, L]
         if self.skill_penalty:
             k = torch.arange(1, distance.shape[-1] + 1, device=distance.device)
             distance = distance + self.skill_penalty * k.to(distance.dtype)
@@ -83,6 +78,14 @@ class GoalCost:
             falls = self.fallen(states[:, :, 1:]).any(dim=-1)  # [B, K]
             cost = cost + self.fall_penalty * falls.to(cost.dtype)
         return cost
+
+    def per_skill(self, states: torch.Tensor) -> torch.Tensor:
+        """`[B, K, L]`: the goal distance after each skill of `states [B, K, L + 1, sd]`."""
+        reached = _select(states[:, :, 1:], self.dims)  # [B, K, L, G]
+        residual = reached - self.goals[:, None, None, :]
+        if self.scale is not None:
+            residual = residual / self.scale
+        return torch.linalg.vector_norm(residual, dim=-1)
 
     @property
     def key(self) -> tuple:
@@ -96,6 +99,59 @@ class GoalCost:
         return GoalCost(
             goals, self.dims, self.skill_penalty, self.fall_penalty, self.fallen, self.scale_values
         )
+
+
+class ValueGoalCost(GoalCost):
+    """`GoalCost` plus a learned temporal distance to the goal after each skill: the distance
+    after skill k (1..L) counts `weight * (k + d(s_k, g) / skill_steps)` more, where
+    `d(s, g)` is the steps to go a goal-conditioned value gives (`pipeline.value`), so the cost
+    is the plan's estimated skills to the goal when it goes through s_k. A short plan is then
+    scored by where it leads however far the goal is, and the TAWM need not be chained to the
+    goal. `weight` 0 is `GoalCost` (the paper's cost).
+
+    Args:
+        steps_to_go: `(states [..., sd], goals [..., G]) -> [...]` steps to the goal.
+        weight: Goal units (success tolerances on manipulation) per skill to go.
+        skill_steps: Environment steps per skill (T).
+        Others: as `GoalCost` (without a fall test).
+    """
+
+    def __init__(
+        self,
+        goals: torch.Tensor,
+        steps_to_go: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+        weight: float,
+        skill_steps: int,
+        dims: tuple[int, ...] | None = None,
+        skill_penalty: float = 0.0,
+        scale: Sequence[float] | None = None,
+    ):
+        super().__init__(goals, dims, skill_penalty, scale=scale)
+        if weight < 0 or skill_steps < 1:
+            raise ValueError(f"need weight >= 0, skill_steps >= 1; got {weight}, {skill_steps}")
+        self.steps_to_go = steps_to_go
+        self.weight = float(weight)
+        self.skill_steps = int(skill_steps)
+
+    def per_skill(self, states: torch.Tensor) -> torch.Tensor:
+        distance = super().per_skill(states)  # [B, K, L]
+        if not self.weight:
+            return distance
+        b, k, n = distance.shape
+        goals = self.goals[:, None, None, :].expand(b, k, n, -1)
+        to_go = self.steps_to_go(states[:, :, 1:], goals) / self.skill_steps
+        skills = torch.arange(1, n + 1, device=distance.device, dtype=distance.dtype)
+        return distance + self.weight * (skills + to_go)
+
+    @property
+    def key(self) -> tuple:
+        return (*super().key, self.steps_to_go, self.weight, self.skill_steps)
+
+    def with_goals(self, goals: torch.Tensor) -> ValueGoalCost:
+        return ValueGoalCost(
+            goals, self.steps_to_go, self.weight, self.skill_steps, self.dims,
+            self.skill_penalty, self.scale_values,
+        )  # fmt: skip
 
 
 def _select(x: torch.Tensor, dims: tuple[int, ...]) -> torch.Tensor:

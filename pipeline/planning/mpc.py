@@ -16,10 +16,13 @@ import numpy as np
 import torch
 
 from pipeline.model.skill_model import SkillModel
-from pipeline.planning.costs import GoalCost
+from pipeline.planning.costs import GoalCost, ValueGoalCost
 from pipeline.planning.noise import normal, problem_keys, substream
 from pipeline.planning.skills import Plan, SkillPlanner, shift_plan
 from pipeline.planning.subgoals import SubgoalGraph
+
+# `(states [..., sd], goals [..., G]) -> [...]` steps to the goal (a learned value's).
+StepsToGo = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 
 
 class SkillMPC:
@@ -37,6 +40,8 @@ class SkillMPC:
             the ant), for the planner's `fall_penalty`; None: the agent cannot fall.
         goal_scale: Per goal dim, what the goal cost divides its distance by (the environment
             spec's `goal_scale`: OGBench manipulation's success tolerances); None: raw units.
+        value: A learned steps-to-go `(states, goals) -> steps`, its weight and the skill length
+            T, for `ValueGoalCost` (`value.weight`); None: the paper's `GoalCost`.
     """
 
     name = "oposm"
@@ -50,8 +55,10 @@ class SkillMPC:
         subgoals: SubgoalGraph | None = None,
         fallen: Callable[[torch.Tensor], torch.Tensor] | None = None,
         goal_scale: Sequence[float] | None = None,
+        value: tuple[StepsToGo, float, int] | None = None,
     ):
         self.model = model
+        self.value = value
         self.goal_scale = goal_scale
         self.fallen = fallen
         self.subgoals = subgoals
@@ -96,16 +103,20 @@ class SkillMPC:
             dims = list(self.goal_dims or range(targets.shape[-1]))
             targets = self.subgoals.waypoints(s0[:, dims], targets)
             self.targets = targets
+        if self.value is None:
+            cost = GoalCost(
+                targets, self.goal_dims, cfg.skill_penalty, cfg.fall_penalty, self.fallen,
+                self.goal_scale,
+            )  # fmt: skip
+        else:
+            steps_to_go, weight, skill_steps = self.value
+            cost = ValueGoalCost(
+                targets, steps_to_go, weight, skill_steps, self.goal_dims, cfg.skill_penalty,
+                self.goal_scale,
+            )  # fmt: skip
         plan = self.planner.plan(
             s0,
-            GoalCost(
-                targets,
-                self.goal_dims,
-                cfg.skill_penalty,
-                cfg.fall_penalty,
-                self.fallen,
-                self.goal_scale,
-            ),
+            cost,
             substream(self._plan_keys[idx], self._replans[idx]),
             init,
         )
