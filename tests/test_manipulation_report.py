@@ -87,8 +87,13 @@ def test_collect_orders_agents_and_judges_each_claim(tmp_path):
 def test_a_run_with_a_learned_value_is_its_own_row_judged_against_the_paper_cost(tmp_path):
     root = _dataset(tmp_path / "cd", [10, 0, 0, 0, 0], [0] * 5, [0] * 5)
     _write(root, "runs/oposm_value/reports/deploy/report.json", _deploy("oposm", [40] * 5))
+    _write(root, "reports/value/report.json", {
+        "steps": 50000, "val_steps_to_go_mae": 22.3, "val_recorded_steps_to_go_mean": 37.2,
+        "val_steps_to_go_spearman": 0.875})  # fmt: skip
     data = manipulation.collect(root)
     assert [a["agent"] for a in data["agents"]] == ["oposm", "oposm + value", "llp", "gcbc"]
+    text = "\n".join(manipulation._data_lines(data))
+    assert "50000 steps" in text and "22.3 steps off" in text and "correlation 0.88" in text
     checks = {c["claim"].split(" on ")[0]: c for c in manipulation.verdicts("cube-double-play",
                                                                             data)}  # fmt: skip
     value = "OPOSM with a learned value (`value.weight`, not the paper's)"

@@ -92,7 +92,7 @@ def collect(root: Path) -> dict[str, Any]:
     """One dataset's data root: its stage reports and its agents on OGBench's tasks."""
     reports = root / "reports"
     out: dict[str, Any] = {"data_root": root.as_posix()}
-    for stage in ("ingest", "segment", "dynamics", "validate"):
+    for stage in ("ingest", "segment", "dynamics", "validate", "value"):
         out[stage] = read(reports / stage / "report.json")
     out["train"] = read(reports / "train" / "metrics.json")
     out["agents"] = _agents(root)
@@ -203,6 +203,15 @@ def _data_lines(data: Mapping[str, Any]) -> list[str]:
                      + ", ".join(f"{k.split('_')[1]} skills: TAWM {v['tawm_error_mean']:.2f}, "
                                  f"no model {v['no_model_error_mean']:.2f}"
                                  for k, v in prior.items()) + ".")  # fmt: skip
+    value = data.get("value")
+    if value:
+        rho = value["val_steps_to_go_spearman"]
+        rank = "undefined" if rho is None else f"{rho:.2f}"
+        lines.append(f"- Learned value (`oposm value`, for the `oposm + value` row): "
+                     f"{value['steps']} steps; on held-out goals up to `value.eval_horizon` steps "
+                     f"ahead it predicts the steps to go {value['val_steps_to_go_mae']:.1f} steps "
+                     f"off on average (the recording took "
+                     f"{value['val_recorded_steps_to_go_mean']:.1f}), rank correlation {rank}.")  # fmt: skip
     return lines
 
 
