@@ -208,10 +208,12 @@ def _data_lines(data: Mapping[str, Any]) -> list[str]:
         rho = value["val_steps_to_go_spearman"]
         rank = "undefined" if rho is None else f"{rho:.2f}"
         took = value["val_recorded_steps_to_go_mean"]
-        lines.append(f"- Learned value (`oposm value`, for the `oposm + value` row): "
-                     f"{value['steps']} steps; on held-out goals up to `value.eval_horizon` steps "
-                     f"ahead it predicts the steps to go {value['val_steps_to_go_mae']:.1f} steps "
-                     f"off on average (the recording took {took:.1f}), rank correlation {rank}.")  # fmt: skip
+        lines.append(
+            f"- Learned value (`oposm value`, for the `oposm + value` row): {value['steps']} "
+            "steps; on held-out goals up to `value.eval_horizon` steps ahead it predicts the "
+            f"steps to go {value['val_steps_to_go_mae']:.1f} steps off on average (the "
+            f"recording took {took:.1f}), rank correlation {rank}."
+        )
     return lines
 
 
