@@ -188,8 +188,6 @@ RERUN_PENDING: dict[str, str] = {
     "pipeline/value/network.py": "(new) the planner's optional learned value (value.weight 0, "
     "the default: the same plans)",
     "stages/oracle.py": "the report holds no wall time (timings/deploy.json); successes unchanged",
-    "experiments/manipulation/notes/cube-double-play.json": "the per-dim s_T std tried and kept "
-    "out; the page shows it once dataset@cube-double-play reruns",
 }
 # The Franka kitchen joins the stages (every env spec may now be the kitchen's): the main job's
 # stages rerun with these gave byte-identical outputs; listed until the stages rerun.
