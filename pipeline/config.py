@@ -100,13 +100,14 @@ class OGBenchSourceParams(_Section):
     env_id: Literal[(*OGBENCH_MAZES, *MANIPSPACE_ENVS)] = Field(  # type: ignore[valid-type]
         "pointmaze-medium-v0",
         description="The OGBench env: pointmaze-* or antmaze-* (medium, large, giant, "
-        "teleport), or a manipulation env (cube-single-v0, cube-double-v0, scene-v0).",
+        "teleport), or a manipulation env (cube-single-v0, cube-double-v0, scene-v0, "
+        "puzzle-3x3-v0 ... puzzle-4x6-v0).",
     )
     dataset_type: Literal["navigate", "stitch", "explore", "play", "noisy"] = Field(
         "navigate",
         description="OGBench's recipe. Mazes: navigate (new goal on reach), stitch (goals 4 "
         "cells away), explore (random directions); manipulation: play (plan oracles, smoothed "
-        "noise) or noisy (Markov oracles, Gaussian noise, 10 % random actions).",
+        "noise) or noisy (Markov oracles, Gaussian noise, 10 % random actions; puzzles 20 %).",
     )
     noise: float | None = Field(
         None,

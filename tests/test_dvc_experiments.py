@@ -102,8 +102,13 @@ def test_each_run_reads_the_models_of_its_agent():
 NOT_RUN_YET: dict[str, tuple[tuple[str, ...], str]] = {
     "experiments/manipulation/dvc.yaml": (
         tuple(f"{stage}@{d}" for stage in ("value", "deploy_value")
-              for d in ("cube-single-play", "scene-play")),
-        "OPOSM with a learned value on the datasets whose data roots are rebuilt first",
+              for d in ("cube-single-play", "scene-play"))
+        + tuple(f"{stage}@{d}" for d in ("puzzle-3x3-play", "puzzle-4x4-play")
+                for stage in ("ingest", "segment", "train", "dynamics", "gcbc", "bc", "validate",
+                              "deploy", "deploy_gcbc", "deploy_llp", "value", "deploy_value",
+                              "oracle", "dataset")),
+        "OPOSM with a learned value on the datasets whose data roots are rebuilt first; the "
+        "whole chains of OGBench's puzzles (puzzle-3x3-play, puzzle-4x4-play), new, not run",
     ),
 }  # fmt: skip
 
@@ -170,17 +175,20 @@ RERUN_PENDING: dict[str, str] = {
     "pipeline/evaluation/open_loop.py": "a function renamed; outputs unchanged",
     "pipeline/evaluation/open_loop_metrics.py": "validate's report holds no seconds",
     "pipeline/sources": "OGBench's manipulation .npz files import; other sources write the same "
-    "MCAP",
+    "MCAP; OGBench's puzzles (generated and imported), the cube and scene data unchanged",
     "pipeline/viz/maze.py": "recordings: a helper renamed (the bytes of .rrd files differ on "
     "every run anyway)",
     "pipeline/viz/overview.py": "recordings: success bars on a fixed 0-100 % scale",
-    "pipeline/viz/manip.py": "recordings: manipulation episodes draw the arm, table, goals, legend",
-    "pipeline/viz/manip_scene.py": "(new) the manipulation scene of the recordings",
+    "pipeline/viz/manip.py": "recordings: manipulation episodes draw the arm, table, goals, "
+    "legend; a puzzle's buttons and goal states (cube and scene recordings as before)",
+    "pipeline/viz/manip_scene.py": "(new) the manipulation scene of the recordings; a puzzle's "
+    "buttons (cube and scene recordings as before)",
     "pipeline/reporting/common.py": "reports read their stage's wall-clock timings from "
     "data/timings/ (same pages where those exist)",
     "pipeline/reporting/antmaze.py": "the training line says 'time not recorded' without timings",
     "pipeline/reporting/manipulation.py": "the training line says 'time not recorded' without "
-    "timings; the page shows a dataset's ladder where there is one",
+    "timings; the page shows a dataset's ladder where there is one; the puzzles are datasets it "
+    "knows (the page as before until they run)",
     "pipeline/planning": "(new) simulated.py, the oposm_sim agent; the other agents unchanged",
     "scripts/manipulation_report.py": "a `ladder` subcommand and the page's --ladders; the "
     "datasets' reports unchanged",
@@ -188,6 +196,10 @@ RERUN_PENDING: dict[str, str] = {
     "pipeline/value/network.py": "(new) the planner's optional learned value (value.weight 0, "
     "the default: the same plans)",
     "stages/oracle.py": "the report holds no wall time (timings/deploy.json); successes unchanged",
+    "pipeline/envs/manipspace_data.py": "OGBench's puzzle recipe (button oracle, gripper closed; "
+    "noisy: 20 % random actions); the cube and scene data unchanged",
+    "pipeline/viz/manip_validate.py": "validate's view follows the gripper in a puzzle (no cube); "
+    "the cube and scene views unchanged",
 }
 # The Franka kitchen joins the stages (every env spec may now be the kitchen's): the main job's
 # stages rerun with these gave byte-identical outputs; listed until the stages rerun.
@@ -211,6 +223,17 @@ RERUN_PENDING |= {
         "pipeline/evaluation/proportions.py",
     )
 }  # fmt: skip
+# OGBench's puzzles join the manipulation envs (their ids, stepping, tasks and oracle); the cube
+# and scene stepping, tasks and oracle are unchanged (tests/test_manipspace.py, bit for bit).
+RERUN_PENDING |= {
+    "pipeline/envs/ids.py": "the puzzles' ids join the manipulation ids; constants moved there "
+    "before (unchanged outputs)",
+    "pipeline/envs/manipspace.py": "puzzle envs added (button grid, neighbour toggles, tasks); "
+    "cube and scene stepping unchanged",
+    "pipeline/envs/manipspace_solver.py": "the puzzles' oracle (exact Lights Out presses); the "
+    "cube and scene oracle unchanged",
+    "pipeline/evaluation/tasks.py": "docstrings (the puzzles' tasks); unchanged outputs",
+}
 
 
 def _covered(problem: str) -> str | None:

@@ -1,5 +1,6 @@
-"""OGBench manipulation (cube-single, cube-double, scene): the spec against the real gymnasium env,
-bit for bit; tasks and success; the play / noisy generator and its check. Real physics, no mocks."""
+"""OGBench manipulation (cube-single, cube-double, scene, the puzzles): the spec against the real
+gymnasium env, bit for bit; tasks and success; the play / noisy generator and its check. Real
+physics, no mocks."""
 
 from __future__ import annotations
 
@@ -14,8 +15,16 @@ from pipeline.envs.manipspace import (
     evaluation_env,
     is_manipspace,
     manipspace_spec,
+    puzzle_toggles,
 )
-from pipeline.envs.manipspace_data import SUBTASKS, check, collection_env, generate
+from pipeline.envs.manipspace_data import (
+    SUBTASKS,
+    check,
+    collection_env,
+    default_p_random_action,
+    generate,
+)
+from pipeline.envs.manipspace_solver import Subtask, oracle_info
 from pipeline.envs.maze import PHYSICS_SPEC
 from pipeline.errors import UserError
 
@@ -46,15 +55,21 @@ def test_sizes_and_ids(spec: ManipSpaceSpec) -> None:
         "cube-single-v0": (1, 28, 200),
         "cube-double-v0": (2, 37, 500),
         "scene-v0": (1, 40, 750),
+        "puzzle-3x3-v0": (0, 19 + 4 * 9, 500),  # OGBench's registered max_episode_steps
+        "puzzle-4x4-v0": (0, 19 + 4 * 16, 500),
+        "puzzle-4x5-v0": (0, 19 + 4 * 20, 1000),
+        "puzzle-4x6-v0": (0, 19 + 4 * 24, 1000),
     }[spec.env_id]
     model = spec.model
-    extra = READINGS + (2 if spec.scene else 0)
+    puzzle = 0 if spec.grid is None else spec.grid[0] * spec.grid[1]  # its buttons
+    assert spec.n_buttons == (2 if spec.scene else puzzle)
+    extra = READINGS + (2 if spec.scene else 0) + puzzle
     full = mujoco.mj_stateSize(model, PHYSICS_SPEC)
     assert full == 1 + model.nq + model.nv
     assert spec.physics_dim == full + model.nv + extra  # + warm start + user data
     assert (spec.n_cubes, spec.state_dim, spec.action_dim) == (n_cubes, state_dim, 5)
     assert (spec.dt, spec.max_episode_steps) == (0.05, limit)
-    assert len(spec.goal_dims) == 3 * n_cubes + (4 if spec.scene else 0)
+    assert len(spec.goal_dims) == 3 * n_cubes + (4 if spec.scene else 0) + puzzle
     assert is_manipspace(spec.env_id) and not is_manipspace("pointmaze-medium-v0")
     with pytest.raises(UserError, match="not a full state"):
         spec.set_observation(mujoco.MjData(model), np.zeros(spec.state_dim))
@@ -69,7 +84,11 @@ def test_physics_state_round_trip(spec: ManipSpaceSpec) -> None:
     spec.set_physics_state(data, state)
     assert np.array_equal(spec.observe(data), ob)
     assert np.array_equal(spec.physics_state(data), state)
-    assert np.array_equal(spec.cube_positions(state)[0], data.qpos[14:17])
+    if spec.n_cubes:
+        assert np.array_equal(spec.cube_positions(state)[0], data.qpos[14:17])
+    assert np.array_equal(
+        spec.button_states(data), getattr(env.unwrapped, "_cur_button_states", [])
+    )
 
 
 def test_control_step_is_the_env_step_bit_for_bit(spec: ManipSpaceSpec) -> None:
@@ -95,7 +114,7 @@ def test_tasks_load_with_their_goals(spec: ManipSpaceSpec) -> None:
     the goal observation and not by the start."""
     tasks = spec.tasks()
     assert [t.task_id for t in tasks] == [1, 2, 3, 4, 5]
-    assert all(t.name.startswith(f"task{t.task_id}_") for t in tasks)
+    assert all(t.name.split("_")[0] == f"task{t.task_id}" for t in tasks)
     data = mujoco.MjData(spec.model)
     for task in tasks:
         assert task.goal.block_xyzs.shape == task.init.block_xyzs.shape == (spec.n_cubes, 3)
@@ -109,6 +128,9 @@ def test_tasks_load_with_their_goals(spec: ManipSpaceSpec) -> None:
             assert (start.goal.drawer_pos, start.goal.window_pos) == (
                 task.goal.drawer_pos, task.goal.window_pos)  # fmt: skip
             assert np.array_equal(spec.button_states(data), task.init.button_states)
+        if spec.grid is not None:  # the buttons exactly the task's, the goal its goal states
+            assert np.array_equal(spec.button_states(data), task.init.button_states)
+            assert np.array_equal(start.goal.button_states, task.goal.button_states)
         goal = spec.goal_vector(start.goal)
         assert goal.shape == (len(spec.goal_dims),)
         assert spec.goal_reached(start.goal_observation, goal)
@@ -132,6 +154,8 @@ def test_success_agrees_with_the_env(spec: ManipSpaceSpec) -> None:
             if spec.scene:
                 qpos[spec._ids["drawer_qpos"]] = start.goal.drawer_pos
                 qpos[spec._ids["window_qpos"]] = start.goal.window_pos
+                u.set_state(qpos, qvel, start.goal.button_states.copy())
+            elif spec.grid is not None:
                 u.set_state(qpos, qvel, start.goal.button_states.copy())
             else:
                 u.set_state(qpos, qvel)
@@ -208,6 +232,81 @@ def test_bad_input() -> None:
     with pytest.raises(UserError, match="unknown manipulation recipe"):
         generate("cube-single-v0", "expert")
     with pytest.raises(UserError, match="unsupported OGBench manipulation env"):
-        generate("puzzle-3x3-v0", "play")
+        generate("puzzle-5x5-v0", "play")
     with pytest.raises(UserError, match="unsupported OGBench manipulation env"):
         ManipSpaceSpec.create("cube-triple-v0")
+
+
+# --- the puzzles ("Lights Out") -----------------------------------------------------------------
+
+
+def test_a_puzzle_press_toggles_the_button_and_its_grid_neighbours():
+    assert puzzle_toggles(3, 3)[4] == [4, 7, 1, 5, 3]  # the centre: itself and 4 neighbours
+    assert sorted(puzzle_toggles(3, 3)[0]) == [0, 1, 3]  # a corner: 2 neighbours
+    assert sorted(puzzle_toggles(4, 6)[6]) == [0, 6, 7, 12]  # row 1, column 0: an edge
+    spec = manipspace_spec("puzzle-4x4-v0")
+    assert spec.grid == (4, 4) and spec._ids["toggles"] == puzzle_toggles(4, 4)
+
+
+def test_pressing_puzzle_buttons_steps_bit_for_bit_with_the_env():
+    """From an evaluation start of puzzle-3x3 task 1 (all off), OGBench's button plan oracle
+    presses the centre button and then a corner; `control_step` follows the env step for step
+    (observation and exact state), and the presses flip 5 buttons, then 3."""
+    from ogbench.manipspace.oracles.plan.button_plan import ButtonPlanOracle
+
+    spec = manipspace_spec("puzzle-3x3-v0")
+    env = evaluation_env(spec.env_id)
+    ob, info = env.reset(seed=7, options={"task_id": 1})
+    data = mujoco.MjData(spec.model)
+    spec.set_physics_state(data, spec.state_of_env(env))
+    oracle = ButtonPlanOracle(env=env, noise=0.0, gripper_always_closed=True)
+    flips = []
+    assert spec.button_states(data).tolist() == [0] * 9
+    for button in (4, 0):
+        sub = Subtask("button", button)
+        sub_info = oracle_info(env, info, sub)
+        oracle.reset(ob, sub_info)
+        while not oracle.done:
+            before = spec.button_states(data)
+            action = oracle.select_action(ob, sub_info)
+            ob, _, _, _, info = env.step(action)
+            spec.control_step(spec.model, data, action)
+            assert np.array_equal(spec.observe(data), ob)
+            assert np.array_equal(spec.physics_state(data), spec.state_of_env(env))
+            if (changed := np.flatnonzero(spec.button_states(data) != before)).size:
+                flips.append(sorted(changed.tolist()))
+            sub_info = oracle_info(env, info, sub)
+    assert flips == [[1, 3, 4, 5, 7], [0, 1, 3]]
+    assert spec.button_states(data).tolist() == [1, 0, 0, 0, 1, 1, 0, 1, 0]
+
+
+@pytest.mark.parametrize("recipe", ["play", "noisy"])
+def test_puzzle_data_is_deterministic_and_replays_exactly(recipe: str) -> None:
+    """OGBench's puzzle recipe: the button oracle presses random target buttons (each press
+    flipping its neighbours too); the same seed makes the same episode, which replays through
+    `control_step` bit for bit."""
+    spec = manipspace_spec("puzzle-4x4-v0")
+    first = generate(spec.env_id, recipe, episodes=1, episode_steps=120, seed=5)[0]
+    again = generate(spec.env_id, recipe, episodes=1, episode_steps=120, seed=5)[0]
+    for key in ("observations", "actions", "physics", "success", "subtask_done"):
+        assert np.array_equal(first[key], again[key]), key
+    report = check([first], spec)
+    assert report["ok"], report["problems"]
+    assert set(report["by_subtask"]) == {"button"}
+    assert set(first["subtask"].tolist()) == {SUBTASKS.index("button")}
+    buttons = first["physics"][:, -16:]
+    flipped = np.abs(np.diff(buttons, axis=0)).sum(axis=1)
+    if recipe == "play":  # the plan oracle presses a button every ~1.5 s
+        assert report["succeeded"] >= 2 and (flipped >= 2).sum() >= 2
+    _replay_exactly(spec, first)
+    assert default_p_random_action(spec, "noisy") == 0.2  # the puzzles' commands.sh lines
+    assert default_p_random_action(manipspace_spec("scene-v0"), "noisy") == 0.1
+
+
+def test_check_fails_a_puzzle_episode_whose_observations_show_other_button_states() -> None:
+    spec = manipspace_spec("puzzle-3x3-v0")
+    ep = generate(spec.env_id, "play", episodes=1, episode_steps=20, seed=1)[0]
+    assert check([ep], spec)["ok"]
+    ep["observations"][5, 19:21] = ep["observations"][5, 19:21][::-1]  # button 0's one-hot flipped
+    report = check([ep], spec)
+    assert not report["ok"] and "observed button states differ" in report["problems"][0]

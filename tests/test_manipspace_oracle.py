@@ -1,11 +1,13 @@
 """OGBench's oracles on its evaluation tasks (`pipeline/envs/manipspace_solver.py`, `oposm
 oracle`): the subtask order on hand-made states, real episodes in OGBench's env from the agents'
-starts, and the stage's report as the manipulation report reads it."""
+starts, and the stage's report as the manipulation report reads it; the puzzles' exact Lights Out
+solver and its presses in OGBench's env."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from factories import one_line_error
 
 from pipeline.envs.manipspace import (
     EPISODE_STEPS,
@@ -17,8 +19,11 @@ from pipeline.envs.manipspace_solver import (
     Subtask,
     episode_seeds,
     in_drawer_goal,
+    lights_out_presses,
     next_subtask,
     run_episode,
+    run_puzzle_episode,
+    toggle_matrix,
 )
 from pipeline.evaluation.tasks import manipulation_episodes
 
@@ -95,3 +100,53 @@ def test_the_oracle_puts_the_scene_cube_in_the_drawer():
     env = make_manipspace_env("scene-v0", max_episode_steps=EPISODE_STEPS["scene-v0"])
     episode = run_episode(env, 4, reset_seed=5, seed=5, scene=True)  # task4_put_in_drawer
     assert episode.success and episode.subtasks >= 4  # button, drawer, cube, drawer
+
+
+# --- the puzzles ("Lights Out") ------------------------------------------------------------------
+
+
+def _all_presses(n: int) -> np.ndarray:
+    """`[2^n, n]` every set of presses of n buttons."""
+    return (np.arange(2**n)[:, None] >> np.arange(n) & 1).astype(np.int64)
+
+
+@pytest.mark.parametrize("env_id", ["puzzle-3x3-v0", "puzzle-4x4-v0"])
+def test_the_presses_solve_each_task_exactly_and_are_the_fewest(env_id):
+    """Over GF(2), against every one of the 2^n press sets: the presses turn each task's init
+    states into its goal states, and no other set that does so is smaller (4x4 has 16 that do)."""
+    spec = manipspace_spec(env_id)
+    matrix = toggle_matrix(*spec.grid).astype(np.int64)
+    every = _all_presses(spec.n_buttons)
+    for task in spec.tasks():
+        init, goal = task.init.button_states, task.goal.button_states
+        presses = lights_out_presses(spec.grid, init, goal).astype(np.int64)
+        assert np.array_equal((init + matrix @ presses) % 2, goal), task.name
+        solving = every[((init + every @ matrix.T) % 2 == goal).all(axis=1)]
+        assert len(solving) == (1 if env_id == "puzzle-3x3-v0" else 16)
+        assert presses.sum() == solving.sum(axis=1).min(), task.name
+
+
+def test_an_unreachable_puzzle_goal_is_a_one_line_error():
+    """4x4 Lights Out is singular: one light on from all off cannot be reached."""
+    goal = np.zeros(16, dtype=np.int64)
+    goal[5] = 1
+    message = one_line_error(lambda: lights_out_presses((4, 4), np.zeros(16), goal))
+    assert "no button presses turn the 4x4 puzzle's states" in message
+    assert lights_out_presses((3, 3), np.zeros(9), np.eye(9, dtype=int)[5]).sum() > 0
+
+
+def test_the_oracle_solves_every_puzzle_3x3_task_from_the_agents_starts():
+    """OGBench's button plan oracle, pressing the buttons the solver picks, reaches OGBench's
+    success on all five tasks of puzzle-3x3 within its 500 steps, from the starts of the agents'
+    episodes (measured: 46 to 269 steps, 2 to 9 presses)."""
+    spec = manipspace_spec("puzzle-3x3-v0")
+    env = make_manipspace_env(spec.env_id, max_episode_steps=EPISODE_STEPS[spec.env_id])
+    starts = manipulation_episodes(spec, ["ogbench"], 1, seed=0)
+    for task in spec.tasks():
+        episode_seed, reset_seed = episode_seeds(0, task.task_id, 0)
+        observation, _ = env.reset(seed=reset_seed, options={"task_id": task.task_id})
+        assert np.array_equal(observation, starts[f"ogbench-task{task.task_id}"][0].start)
+        episode = run_puzzle_episode(env, task.task_id, reset_seed, episode_seed)
+        presses = lights_out_presses(spec.grid, task.init.button_states, task.goal.button_states)
+        assert episode.success, task.name
+        assert episode.steps < EPISODE_STEPS[spec.env_id] and episode.subtasks == presses.sum()

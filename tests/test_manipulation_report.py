@@ -131,7 +131,7 @@ def test_script_writes_each_datasets_report_then_the_page_from_them(tmp_path):
                                                                  "successes": 150}  # fmt: skip
     assert saved["published"]["scene-play"]["GCIQL"] == [51, 4]
     with pytest.raises(UserError, match="is not one of"):
-        manipulation_report.main(["dataset", "puzzle-3x3-play", str(tmp_path),
+        manipulation_report.main(["dataset", "cube-triple-play", str(tmp_path),
                                   "--out", str(tmp_path / "x.json")])  # fmt: skip
     with pytest.raises(UserError, match="does not exist"):
         manipulation_report.main(["page", str(reports / "cube-double-play.json"), "--out",

@@ -39,11 +39,22 @@ CUBE = "cube-single-v0"
 
 def _script_oracles(env: gymnasium.Env, env_id: str, dataset_type: str) -> dict:
     """The script's agents: plan oracles (noise 0.1, smoothing 0.5) for play, Markov oracles
-    (min_norm 0.4; the scene's cube one with max_step 100) for noisy."""
+    (min_norm 0.4; the scene's cube one with max_step 100) for noisy; a puzzle's button oracle
+    with the gripper always closed."""
     from ogbench.manipspace.oracles.markov import button_markov, cube_markov, drawer_markov
     from ogbench.manipspace.oracles.markov import window_markov as window_m
     from ogbench.manipspace.oracles.plan import button_plan, cube_plan, drawer_plan, window_plan
 
+    if env_id.startswith("puzzle-"):
+        if dataset_type == "play":
+            oracle = button_plan.ButtonPlanOracle(
+                env=env, noise=0.1, noise_smoothing=0.5, gripper_always_closed=True
+            )
+        else:
+            oracle = button_markov.ButtonMarkovOracle(
+                env=env, min_norm=0.4, gripper_always_closed=True
+            )
+        return {"button": oracle}
     kinds = ("cube", "button", "drawer", "window") if env_id == "scene-v0" else ("cube",)
     if dataset_type == "play":
         plans = (cube_plan.CubePlanOracle, button_plan.ButtonPlanOracle,
@@ -77,7 +88,7 @@ def write_like_ogbench(
     env.reset(seed=seed)
     spec = manipspace_spec(env_id)
     agents = _script_oracles(env, env_id, dataset_type)
-    p_random = 0.1 if dataset_type == "noisy" else 0.0  # commands.sh
+    p_random = 0.0 if dataset_type == "play" else 0.2 if env_id.startswith("puzzle-") else 0.1
     rows: dict[str, list] = {k: [] for k in ("observations", "actions", "terminals", "qpos",
                                              "qvel", "button_states")}  # fmt: skip
     exact, finished = [], []
@@ -270,6 +281,75 @@ def test_generated_episodes_round_trip_through_ogbenchs_layout(tmp_path):
         assert own.max() < 1e-5 and after.mean() < 1e-3, (own.max(), after.mean())
 
 
+# --- the puzzles ---------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def puzzle_file(tmp_path_factory):
+    """puzzle-3x3 play as OGBench's script writes it: 2 episodes of 150 steps and a 1-episode
+    `-val.npz`."""
+    path = tmp_path_factory.mktemp("ogbench") / "puzzle-3x3-play-v0.npz"
+    made = write_like_ogbench(path, "puzzle-3x3-v0", "play", episodes=2, val=1, steps=150, seed=4)
+    return path, made
+
+
+def test_a_puzzle_file_imports_with_its_button_states_through_ingest(puzzle_file, tmp_path):
+    """`ingest.ogbench.path` of OGBench's puzzle file and its -val: three episodes, each step's
+    button states as the file holds them (and as the env had them), qpos and qvel its float32,
+    the restored states observing their observations to float32 rounding; the presses it
+    recorded flip a button and its neighbours."""
+    from stages import ingest
+
+    path, made = puzzle_file
+    with np.load(path) as f:
+        assert f["button_states"].dtype == np.int64 and f["button_states"].shape == (300, 9)
+        assert f["observations"].shape == (300, 55) and f["qpos"].shape[1] == 23
+    params = load_params(
+        ROOT / "params-ogbench-puzzle-3x3-play.yaml",
+        ["ingest.name=og", f"ingest.ogbench.path={path}"],
+    )
+    paths = Paths(tmp_path / "data")
+    report = ingest.run(params, paths, progress=False)
+    assert (report["episodes"], report["steps"], report["n_problems"]) == (3, 450, 0)
+    assert report["restore_observation_error_max"] < 1e-5
+    assert report["restore_next_error_max"] < 0.05
+    spec = manipspace_spec("puzzle-3x3-v0")
+    info = read_info(paths.demos("og"))
+    assert (info.env_id, info.physics_dim, info.generator["dataset_type"]) == (
+        "puzzle-3x3-v0", spec.physics_dim, "play")  # fmt: skip
+    assert info.state_names[19:23] == ["button0_off", "button0_on", "button0_pos", "button0_vel"]
+    nq, nv = spec.model.nq, spec.model.nv
+    buttons = 1 + nq + 2 * nv + READINGS
+    flips = 0
+    for ep, exact in zip(iter_episodes(paths.demos("og")), made["exact"], strict=True):
+        assert np.array_equal(ep.physics[:, buttons:], exact[:, buttons:])  # the env's states
+        assert np.array_equal(ep.physics[:, 1 : 1 + nq], exact[:, 1 : 1 + nq].astype(np.float32))
+        changed = np.abs(np.diff(ep.physics[:, buttons:], axis=0)).sum(axis=1)
+        flips += int((changed >= 2).sum())  # a press with its neighbours
+    assert flips >= 2 and made["finished_per_episode"].sum() >= 2
+
+
+def test_generated_puzzle_episodes_round_trip_through_ogbenchs_layout(tmp_path):
+    """The generator's puzzle-4x4 noisy episodes written in OGBench's layout (16 button states
+    per step) and imported back: the button states and observations as stored."""
+    exact = list(open_manipulation("puzzle-4x4-v0", "noisy", 2, 40, 2, "g").episodes)
+    path = tmp_path / "puzzle-4x4-noisy-v0.npz"
+    assert write_manipulation_npz(path, exact, "puzzle-4x4-v0") == 80
+    with np.load(path) as f:
+        assert f["button_states"].dtype == np.int64 and f["button_states"].shape == (80, 16)
+    imported = list(open_manipulation("puzzle-4x4-v0", "play", 1, 1, 0, "i", path=path).episodes)
+    spec = manipspace_spec("puzzle-4x4-v0")
+    buttons = 1 + spec.model.nq + 2 * spec.model.nv + READINGS
+    for got, want in zip(imported, exact, strict=True):
+        assert np.array_equal(got.observations, want.observations.astype(np.float32))
+        assert np.array_equal(got.physics[:, buttons:], want.physics[:, buttons:])
+        own, after = restore_errors(spec, got, every=1, step_every=1)
+        # measured: median ~5e-7; one step in which the gripper touches a button, 0.087 (the
+        # button's position x 120: 0.7 mm), as the cube files' rare contact steps
+        assert own.max() < 1e-5 and np.median(after) < 1e-5 and after.max() < 0.2, (
+            own.max(), np.median(after), after.max())  # fmt: skip
+
+
 # --- the project's generator against the script --------------------------------------------------
 
 
@@ -335,8 +415,10 @@ def test_damaged_foreign_and_mismatched_files_are_one_line_errors(script_file, t
     assert "not found" in one_line_error(lambda: _open(tmp_path / "nope.npz"))
     message = one_line_error(lambda: _open(save("cube-double-play-v0.npz")))
     assert "set ingest.ogbench.env_id=cube-double-v0" in message  # the name says another env
+    message = one_line_error(lambda: _open(save("cube-triple-play-v0.npz")))
+    assert "not simulated here" in message and "cube-triple-v0" in message
     message = one_line_error(lambda: _open(save("puzzle-3x3-play-v0.npz")))
-    assert "not simulated here" in message and "puzzle-3x3-v0" in message
+    assert "set ingest.ogbench.env_id=puzzle-3x3-v0" in message  # a puzzle file: simulated
     message = one_line_error(lambda: _open(save("pointmaze-medium-navigate-v0.npz")))
     assert "set ingest.ogbench.env_id=pointmaze-medium-v0" in message
     message = one_line_error(lambda: _open(save("visual-cube-single-play-v0.npz")))
@@ -351,8 +433,10 @@ def test_damaged_foreign_and_mismatched_files_are_one_line_errors(script_file, t
     shuffled = np.roll(arrays["qpos"], 7, axis=0)  # sizes fit, states do not
     message = one_line_error(lambda: _open(save("foreign.npz", qpos=shuffled)))
     assert "foreign.npz" in message and "not an OGBench cube-single-v0 file" in message
-    # the scene needs its button states
+    # the scene and the puzzles need their button states
     message = one_line_error(lambda: _open(save("scene.npz"), "scene-v0"))
+    assert "'button_states'" in message
+    message = one_line_error(lambda: _open(save("puzzle.npz"), "puzzle-4x4-v0"))
     assert "'button_states'" in message
 
 

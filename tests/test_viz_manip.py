@@ -236,3 +236,94 @@ def test_every_maze_domain_has_a_dataset_view(tmp_path, env_id):
     assert scale[0] == spec.layout["maze_size_scaling"]
     (paths,) = _values(path, "/demos/paths", "strips")
     assert np.allclose(paths[0], free * [1, -1])  # the right way up
+
+
+# --- the puzzles ----------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def puzzle():
+    """A puzzle-3x3 play episode of 60 steps: the button oracle presses buttons in it."""
+    from pipeline.envs.manipspace_data import generate
+
+    spec = manipspace_spec("puzzle-3x3-v0")
+    ep = generate(spec.env_id, "play", episodes=1, episode_steps=60, seed=2)[0]
+    return spec, ep["observations"], ep["actions"]
+
+
+def test_a_puzzle_episode_shows_its_buttons_in_their_states_colours_and_the_goal(tmp_path, puzzle):
+    """No cube: the button caps at every step in their state's colour (OGBench's red 0, blue 1),
+    each button's goal state a wire box in that state's colour, the grid's states in the text."""
+    spec, obs, actions = puzzle
+    goal = np.array([1, 1, 0, 1, 0, 1, 0, 1, 1], dtype=float)  # puzzle-3x3 task 1's
+    result = _result(spec, obs, actions)
+    result.spec = EpisodeSpec("ogbench-task1", 0, obs[0], goal, 5)
+    path = tmp_path / "oposm-ogbench-task1-0000.rrd"
+    write_manip_episode_recording(path, result, spec)
+    _verify(path)
+    entities = _entities(path)
+    assert {"/world/buttons", "/world/button_goals", "/world/arm/links", "/summary"} <= entities
+    assert "/world/scene/button_4" in entities and "/world/cubes" not in entities
+    red, blue = list(manip_scene.BUTTON_OFF), list(manip_scene.BUTTON_ON)
+    (goal_colors,) = _values(path, "/world/button_goals", "colors")
+    assert [_rgb(c) for c in goal_colors] == [blue if g else red for g in goal]
+    caps = [[_rgb(c) for c in row] for row in _values(path, "/world/buttons", "colors")]
+    assert len(caps) == len(obs)  # a row per step
+    states = obs[:, 19 + 1 : 19 + 4 * 9 : 4]  # each button's "on" dim
+    assert caps == [[blue if s else red for s in row] for row in states]
+    assert len({tuple(map(tuple, row)) for row in caps}) >= 2  # a press changed colours
+    labels = [
+        label
+        for e in sorted(entities)
+        if e.startswith("/legend/") and e.endswith("/label")
+        for label in _values(path, e, "labels")[0]
+    ]
+    assert {"button off (0)", "button on (1)", "goal: on"} <= set(labels)
+    assert "TAWM: predicted cubes" not in labels
+    ((text,),) = _values(path, "/summary", "text")
+    assert "goal 110 101 011" in text and "in their goal state" in text
+
+
+def _rgb(packed: int) -> list[int]:
+    """A colour as Rerun stores it (0xRRGGBBAA) -> [r, g, b]."""
+    return [(packed >> shift) & 0xFF for shift in (24, 16, 8)]
+
+
+def test_a_puzzle_dataset_and_its_validate_view_open(tmp_path, puzzle):
+    """`oposm view` of a puzzle dataset: the buttons on the dataset clock, no cube paths; and
+    validate's recording follows the gripper (no cube to follow)."""
+    from pipeline.evaluation.open_loop import ModeResult, OpenLoopResult
+    from pipeline.viz.manip_validate import tracked, write_validate_recording
+
+    spec, obs, actions = puzzle
+    n = len(actions)
+    info = make_info("puzzle")
+    info.env_id, info.source, info.goal_dim, info.physics_dim = spec.env_id, "ogbench", 0, 0
+    info.state_names = [f"s{k}" for k in range(spec.state_dim)]
+    info.state_units = ["1"] * spec.state_dim
+    info.action_names = ["dx", "dy", "dz", "dyaw", "dgrip"]
+    info.action_units = ["1"] * 5
+    info.control_period = spec.dt
+    episodes = [
+        Episode(index=0, observations=obs[:n], actions=actions, time=spec.dt * np.arange(n))
+    ]
+    write_dataset(tmp_path / "puzzle.mcap", info, episodes)
+    path = tmp_path / "puzzle.rrd"
+    assert write_dataset_view(tmp_path / "puzzle.mcap", path) == {"episodes": 1, "total": 1}
+    _verify(path)
+    entities = _entities(path)
+    assert {"/world/buttons", "/world/arm/links", "/world/paths/gripper"} <= entities
+    assert len(_values(path, "/world/buttons", "colors")) == n
+    rollouts = np.stack([obs[:21], obs[20:41]])  # [2, L H + 1, sd]: 2 rollouts, L 4 x H 5
+    mode = ModeResult(real=rollouts, actions=np.stack([actions[:20], actions[20:40]]),
+                      tawm_mean=rollouts[:, 5::5], pred_mean=rollouts[:, 5::5],
+                      pred_std=np.ones_like(rollouts[:, 5::5]), single_step=rollouts)  # fmt: skip
+    result = OpenLoopResult(5, np.array([0]), 2, {"prior": mode}, 80, 1.0)
+    validate = tmp_path / "validate.rrd"
+    write_validate_recording(validate, result, spec, n_starts=1)
+    _verify(validate)
+    (real,) = _values(validate, "/prior/start_0/real", "strips")
+    assert np.allclose(real[0], tracked(spec, obs[:21]))  # the pinch site's path
+    assert np.allclose(real[0], manip_scene.to_metres(obs[:21, manip_scene.PINCH]))
+    ((text,),) = _values(validate, "/about", "text")
+    assert "the gripper's (pinch site) real paths" in text

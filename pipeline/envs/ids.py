@@ -27,8 +27,9 @@ OGBENCH_MAZES: dict[str, tuple[str, str]] = {
     for size in ("medium", "large", "giant", "teleport")
 }
 
-# OGBench's manipulation ids.
-MANIPSPACE_ENVS: tuple[str, ...] = ("cube-single-v0", "cube-double-v0", "scene-v0")
+# OGBench's manipulation ids: the cubes, the scene, and the "Lights Out" puzzles (rows x cols).
+PUZZLE_ENVS: tuple[str, ...] = tuple(f"puzzle-{g}-v0" for g in ("3x3", "4x4", "4x5", "4x6"))
+MANIPSPACE_ENVS: tuple[str, ...] = ("cube-single-v0", "cube-double-v0", "scene-v0", *PUZZLE_ENVS)
 
 # Evaluation task names (`pipeline.evaluation.tasks`). The position of a name is part of every
 # episode's seed, so the order is fixed (new names go last); OGBench's task K is reported as

@@ -1,9 +1,10 @@
 """OGBench's manipulation tasks (`ogbench.manipspace`): `cube-single-v0`, `cube-double-v0`,
-`scene-v0` behind the `EnvSpec` interface, with their evaluation tasks and success rule.
+`scene-v0` and the puzzles `puzzle-3x3-v0` ... `puzzle-4x6-v0` behind the `EnvSpec` interface,
+with their evaluation tasks and success rule.
 
 What OGBench's ManipSpace really is (read from `ogbench/manipspace/envs/{env,manipspace_env,
-cube_env,scene_env}.py` and `controllers/diff_ik.py` of the installed ogbench 1.2.2, and checked
-step for step against the gymnasium env in tests/test_manipspace.py):
+cube_env,scene_env,puzzle_env}.py` and `controllers/diff_ik.py` of the installed ogbench 1.2.2,
+and checked step for step against the gymnasium env in tests/test_manipspace.py):
 
 - **Robot** (generic): a UR5e arm (6 hinge joints, PD position actuators with OGBench's gains)
   and a Robotiq 2F-85 gripper (8 coupled joints, one actuator). Physics steps of 0.002 s
@@ -20,15 +21,20 @@ step for step against the gymnasium env in tests/test_manipspace.py):
   position `(p - [0.425, 0, 0]) * 10` (3), cos and sin of its yaw (2), gripper opening
   `clip(q_driver / 0.8, 0, 1) * 3` (1), gripper contact `clip(|cfrc_ext(right pad)| / 50, 0, 1)`
   (1). Per cube (per-env): position (scaled as above, 3), quaternion (4), cos and sin of its yaw
-  (2). Scene only: per button a one-hot state (2), joint position * 120 and velocity; drawer
-  position * 18 and velocity; window position * 15 and velocity.
+  (2). Scene and puzzle: per button a one-hot state (2), joint position * 120 and velocity (the
+  scene's 2 buttons, a puzzle's rows x cols in row-major order); scene only: drawer position * 18
+  and velocity; window position * 15 and velocity.
+- **Puzzle** ("Lights Out"): a button pressed down (its joint crossing -0.02 going down) toggles
+  its own state and those of its 4 grid neighbours; a puzzle has no cube (`n_cubes` 0).
 - **Goal** (`goal_dims`, per-env): the observation dims of each cube's position; for the scene
-  also each button's state (the "on" dim of its one-hot), the drawer and the window position:
-  OGBench's own "oracle goal representation" (`compute_oracle_observation`) in observation units.
+  and the puzzles also each button's state (the "on" dim of its one-hot), for the scene the
+  drawer and the window position: OGBench's own "oracle goal representation"
+  (`compute_oracle_observation`) in observation units.
 - **Success** (per-env, `ManipSpaceSpec.success`): every cube within 0.04 m of its goal position;
   scene also every button in its goal state and drawer and window within 0.04 of their goal
-  positions. The registered ids judge it after the step (`success_timing='post'`); an evaluation
-  episode lasts at most 200 (cube-single), 500 (cube-double), 750 (scene) steps.
+  positions; a puzzle every button in its goal state. The registered ids judge it after the step
+  (`success_timing='post'`); an evaluation episode lasts at most 200 (cube-single), 500
+  (cube-double, puzzle-3x3, puzzle-4x4), 750 (scene), 1000 (puzzle-4x5, puzzle-4x6) steps.
 
 **Why the physics state is more than `mjSTATE_FULLPHYSICS`.** Restoring `[time, qpos, qvel]`
 and stepping does not reproduce the env, for three reasons, so a state here (`physics_dim`) is
@@ -43,19 +49,20 @@ model recompiled with room for user data (every physics parameter copied and che
    one physics step (in the scene a post-step `mj_forward` refreshes the pose, not the force).
    They are not functions of `qpos`, so the state keeps these "readings" (pinch position 3,
    orientation matrix 9, pad force 6) in `MjData.userdata`, where `control_step` leaves them.
-3. The scene's button states (which toggle when a button is pressed down past -0.02 and lock
-   the drawer or window by a joint damping of 1e6 instead of 2) live in the env object, not in
-   `MjData`; they are kept in user data too, and `control_step` writes the damping they imply
-   into the model before stepping (so slots sharing one model stay independent).
+3. The button states of the scene (which toggle when a button is pressed down past -0.02 and
+   lock the drawer or window by a joint damping of 1e6 instead of 2) and of a puzzle live in the
+   env object, not in `MjData`; they are kept in user data too, and `control_step` writes the
+   damping the scene's imply into the model before stepping (so slots sharing one model stay
+   independent).
 
 So `set_physics_state` + `observe` returns the env's observation bit for bit, and
 `control_step` the env's next state and observation bit for bit. Not reproduced: the scene env's
 task-mode "numerical instability" reset (a cube beyond the workspace bounds +- 0.2 m is put back
 at a random place with the env's generator; OGBench's data generation does not use it and
 `manipspace_data.check` flags such states instead), and the colours OGBench paints on its model
-(visual only). An observation is not a full state (the gripper's 7 coupled joints and the
-objects' velocities are missing), so `set_observation` refuses: start from a physics state
-(`task_start`, or a dataset's recorded states).
+(visual only: the buttons' state colours too). An observation is not a full state (the gripper's
+7 coupled joints and the objects' velocities are missing), so `set_observation` refuses: start
+from a physics state (`task_start`, or a dataset's recorded states).
 """
 
 from __future__ import annotations
@@ -69,28 +76,33 @@ import gymnasium
 import mujoco
 import numpy as np
 
-from pipeline.envs.ids import MANIPSPACE_ENVS
+from pipeline.envs.ids import MANIPSPACE_ENVS, PUZZLE_ENVS
 from pipeline.envs.maze import PHYSICS_SPEC
 from pipeline.errors import UserError
 
-# Cubes per id (`MANIPSPACE_ENVS`; the scene has one cube, two buttons, a drawer, a window).
-_CUBES = {"cube-single-v0": 1, "cube-double-v0": 2, "scene-v0": 1}
+# Cubes per id (`MANIPSPACE_ENVS`; the scene has one cube, two buttons, a drawer, a window; a
+# puzzle none, and rows x cols buttons: `PUZZLE_GRIDS`).
+_CUBES = {"cube-single-v0": 1, "cube-double-v0": 2, "scene-v0": 1} | dict.fromkeys(PUZZLE_ENVS, 0)
+# puzzle-RxC-v0 -> (R, C)
+PUZZLE_GRIDS: dict[str, tuple[int, int]] = {e: (int(e[7]), int(e[9])) for e in PUZZLE_ENVS}
 # Step limit of an evaluation episode (the registered `max_episode_steps` of these ids).
-EPISODE_STEPS = {"cube-single-v0": 200, "cube-double-v0": 500, "scene-v0": 750}
+EPISODE_STEPS = {"cube-single-v0": 200, "cube-double-v0": 500, "scene-v0": 750,
+                 "puzzle-3x3-v0": 500, "puzzle-4x4-v0": 500, "puzzle-4x5-v0": 1000,
+                 "puzzle-4x6-v0": 1000}  # fmt: skip
 
 # What a state is (module docstring): full physics, the solver's warm start, the readings.
 # The env's own model has no user data: its part of a state is the rest.
 ENV_STATE_SPEC = PHYSICS_SPEC | mujoco.mjtState.mjSTATE_WARMSTART
 MANIP_STATE_SPEC = ENV_STATE_SPEC | mujoco.mjtState.mjSTATE_USERDATA
 # User data: pinch site position (3) and orientation matrix (9), right pad's cfrc_ext (6), then
-# the scene's button states (2).
+# the button states (the scene's 2, a puzzle's rows x cols: `ManipSpaceSpec.n_buttons`).
 READING_POS = slice(0, 3)
 READING_MAT = slice(3, 12)
 READING_FORCE = slice(12, 18)
 READINGS = 18
-BUTTONS = 2
+BUTTONS = 2  # the scene's
 
-# OGBench's constants (`ManipSpaceEnv`, `SceneEnv`).
+# OGBench's constants (`ManipSpaceEnv`, `SceneEnv`, `PuzzleEnv`).
 ACTION_SCALE = np.array([0.05, 0.05, 0.05, 0.3, 1.0])  # action [-1, 1] -> m, m, m, rad, opening
 WORKSPACE_BOUNDS = np.array([[0.25, -0.35, 0.02], [0.6, 0.35, 0.35]])  # pinch target clip, m
 XYZ_CENTER = np.array([0.425, 0.0, 0.0])
@@ -104,6 +116,8 @@ GRIPPER_OPEN_QPOS = 0.8  # driver joint angle of a fully open gripper (opening 1
 GRIPPER_CTRL = 255.0  # actuator command of opening 1
 SUCCESS_TOLERANCE = 0.04  # m (cubes) or joint units (drawer, window)
 BUTTON_PRESSED = -0.02  # a button toggles when its joint crosses this going down
+# A pressed puzzle button toggles itself and its grid neighbours (row, col offsets).
+PUZZLE_NEIGHBOURS = ((0, 0), (1, 0), (-1, 0), (0, 1), (0, -1))
 # The goal cost's scale of a button-state dim (`ManipSpaceSpec.goal_scale`): the states are 0 or 1,
 # so a predicted state half-way between counts as one tolerance off, a wrong one as two.
 BUTTON_GOAL_SCALE = 0.5
@@ -113,10 +127,23 @@ HEALTHY_MARGIN = 0.2  # the scene's instability test: cube beyond workspace boun
 # The pinch frame's downward orientation (`_effector_down_rotation`) as a quaternion, w x y z.
 EFFECTOR_DOWN_WXYZ = (0.0, 1.0, 0.0, 0.0)
 
-# Observation layout (module docstring): proprioception, then 9 per cube, then the scene's parts.
+# Observation layout (module docstring): proprioception, then 9 per cube, then the buttons, then
+# the scene's drawer and window.
 PROPRIO_DIM = 19
+PINCH_DIMS = slice(12, 15)  # the pinch site's position in the proprioception (scaled as a cube's)
 CUBE_DIM = 9
 BUTTON_DIM = 4  # one-hot (2), position, velocity
+
+
+def puzzle_toggles(rows: int, cols: int) -> list[list[int]]:
+    """Per button of a rows x cols puzzle (row-major), the buttons a press of it toggles: itself
+    and its grid neighbours (OGBench's `PuzzleEnv.post_step`)."""
+    out = []
+    for i in range(rows * cols):
+        x, y = divmod(i, cols)
+        near = [(x + dx, y + dy) for dx, dy in PUZZLE_NEIGHBOURS]
+        out.append([r * cols + c for r, c in near if 0 <= r < rows and 0 <= c < cols])
+    return out
 
 
 def is_manipspace(env_id: str) -> bool:
@@ -165,8 +192,9 @@ def evaluation_env(env_id: str) -> gymnasium.Env:
 
 @dataclass(frozen=True, eq=False)
 class ObjectConfig:
-    """Where a task's objects are: cube positions `[n_cubes, 3]` (m); the scene's button
-    states `[2]` (0 locks the drawer / window), drawer and window joint positions (else None)."""
+    """Where a task's objects are: cube positions `[n_cubes, 3]` (m; `[0, 3]` in a puzzle); the
+    button states `[n_buttons]` (the scene's 0 locks the drawer / window; a puzzle's, row-major),
+    the scene's drawer and window joint positions (else None)."""
 
     block_xyzs: np.ndarray
     button_states: np.ndarray | None = None
@@ -175,10 +203,11 @@ class ObjectConfig:
 
     @classmethod
     def from_task_part(cls, part: dict[str, Any]) -> ObjectConfig:
-        """From a scene task's `init` / `goal` dict (cube tasks: `{'block_xyzs': ...}`)."""
+        """From a scene task's `init` / `goal` dict (cube tasks: `{'block_xyzs': ...}`; puzzles:
+        `{'button_states': ...}`)."""
         buttons = part.get("button_states")
         return cls(
-            block_xyzs=np.array(part["block_xyzs"], dtype=np.float64),
+            block_xyzs=np.array(part.get("block_xyzs", np.zeros((0, 3))), dtype=np.float64),
             button_states=None if buttons is None else np.array(buttons, dtype=np.int64),
             drawer_pos=None if "drawer_pos" not in part else float(part["drawer_pos"]),
             window_pos=None if "window_pos" not in part else float(part["window_pos"]),
@@ -269,8 +298,10 @@ class ManipSpaceSpec:
     Attributes (besides `EnvSpec`'s):
         n_cubes: Cubes in the scene.
         scene: Whether the env has the scene's buttons, drawer and window.
-        layout: The workspace (`workspace_bounds`, OGBench's object and target sampling bounds),
-            not a maze.
+        layout: The workspace (`workspace_bounds`, OGBench's object and target sampling bounds;
+            a puzzle's `grid`, rows and cols), not a maze.
+        n_buttons: Buttons (the scene's 2, a puzzle's rows x cols; the cube envs' 0).
+        grid: A puzzle's (rows, cols); None for the other envs.
     """
 
     env_id: str
@@ -286,16 +317,21 @@ class ManipSpaceSpec:
     _ids: dict[str, Any]
     _ik: Any
     _pinch_to_flange: Any
+    n_buttons: int = 0
+    grid: tuple[int, int] | None = None
     state_spec: ClassVar[int] = MANIP_STATE_SPEC
 
     @classmethod
     def create(cls, env_id: str) -> ManipSpaceSpec:
-        """The spec of OGBench's `env_id` (`cube-single-v0`, `cube-double-v0`, `scene-v0`)."""
+        """The spec of OGBench's `env_id` (`cube-single-v0`, `cube-double-v0`, `scene-v0`,
+        `puzzle-3x3-v0`, ...)."""
         check_manipspace_id(env_id)
         env = reference_env(env_id)
         u = env.unwrapped
         scene = env_id == "scene-v0"
-        model = _with_user_data(env, READINGS + (BUTTONS if scene else 0))
+        grid = PUZZLE_GRIDS.get(env_id)
+        n_buttons = BUTTONS if scene else 0 if grid is None else grid[0] * grid[1]
+        model = _with_user_data(env, READINGS + n_buttons)
         n_cubes = _CUBES[env_id]
         for mask in (mujoco.mjtState.mjSTATE_PLUGIN, mujoco.mjtState.mjSTATE_ACT):
             if mujoco.mj_stateSize(model, mask):  # state layout below assumes none
@@ -312,21 +348,28 @@ class ManipSpaceSpec:
             "cube_qpos": [int(joint(f"object_joint_{i}").qposadr[0]) for i in range(n_cubes)],
         }
         goal_dims = [PROPRIO_DIM + CUBE_DIM * i + k for i in range(n_cubes) for k in range(3)]
+        buttons = range(n_buttons)
+        base = PROPRIO_DIM + CUBE_DIM * n_cubes
+        if n_buttons:
+            ids["button_qpos"] = [int(joint(f"buttonbox_joint_{i}").qposadr[0]) for i in buttons]
+            ids["button_dof"] = [int(joint(f"buttonbox_joint_{i}").dofadr[0]) for i in buttons]
+            # what a press of each button toggles: the scene's itself, a puzzle's its neighbours
+            ids["toggles"] = [[i] for i in buttons] if grid is None else puzzle_toggles(*grid)
+            goal_dims += [base + BUTTON_DIM * i + 1 for i in buttons]  # each button's "on" dim
         if scene:
-            ids["button_qpos"] = [int(joint(f"buttonbox_joint_{i}").qposadr[0]) for i in (0, 1)]
-            ids["button_dof"] = [int(joint(f"buttonbox_joint_{i}").dofadr[0]) for i in (0, 1)]
             for part in ("drawer", "window"):
                 ids[f"{part}_qpos"] = int(joint(f"{part}_slide").qposadr[0])
                 ids[f"{part}_dof"] = int(joint(f"{part}_slide").dofadr[0])
-            base = PROPRIO_DIM + CUBE_DIM * n_cubes
-            goal_dims += [base + 1, base + BUTTON_DIM + 1]  # each button's "on" dim
-            goal_dims += [base + 2 * BUTTON_DIM, base + 2 * BUTTON_DIM + 2]  # drawer, window
+            after = base + BUTTON_DIM * n_buttons
+            goal_dims += [after, after + 2]  # drawer, window
         layout = {
             "kind": "manipspace",
             "workspace_bounds": WORKSPACE_BOUNDS.tolist(),
             "object_sampling_bounds": np.asarray(u._object_sampling_bounds).tolist(),
             "target_sampling_bounds": np.asarray(u._target_sampling_bounds).tolist(),
         }
+        if grid is not None:
+            layout["grid"] = list(grid)
         return cls(
             env_id=env_id,
             model=model,
@@ -341,14 +384,16 @@ class ManipSpaceSpec:
             _ids=ids,
             _ik=u._ik,
             _pinch_to_flange=u._T_pa,
+            n_buttons=n_buttons,
+            grid=grid,
         )
 
     # State ------------------------------------------------------------------------------------
 
     @property
     def physics_dim(self) -> int:
-        """`[time, qpos, qvel, qacc_warmstart, readings (18), scene: button states (2)]`: 80
-        (cube-single), 99 (cube-double), 94 (scene)."""
+        """`[time, qpos, qvel, qacc_warmstart, readings (18), button states (n_buttons)]`: 80
+        (cube-single), 99 (cube-double), 94 (scene), 97 (puzzle-3x3), 125 (puzzle-4x4)."""
         return int(mujoco.mj_stateSize(self.model, MANIP_STATE_SPEC))
 
     def physics_state(self, data: mujoco.MjData) -> np.ndarray:
@@ -393,7 +438,7 @@ class ManipSpaceSpec:
         core = np.empty(mujoco.mj_stateSize(model, ENV_STATE_SPEC))
         mujoco.mj_getState(model, data, core, ENV_STATE_SPEC)
         parts = [core, self._readings(data)]
-        if self.scene:
+        if self.n_buttons:
             parts.append(np.asarray(u._cur_button_states, dtype=np.float64))
         return np.concatenate(parts)
 
@@ -405,8 +450,8 @@ class ManipSpaceSpec:
         )
 
     def button_states(self, data: mujoco.MjData) -> np.ndarray:
-        """The scene's button states `[2]` (int) kept in `data.userdata`."""
-        return data.userdata[READINGS : READINGS + BUTTONS].astype(np.int64)
+        """The button states `[n_buttons]` (int) kept in `data.userdata`."""
+        return data.userdata[READINGS : READINGS + self.n_buttons].astype(np.int64)
 
     def _apply_locks(self, model: mujoco.MjModel, data: mujoco.MjData) -> None:
         """The scene: the drawer (button 0) and window (button 1) damping the buttons imply."""
@@ -431,6 +476,11 @@ class ManipSpaceSpec:
         cubes = np.asarray(observations, dtype=np.float64)[..., cols]
         return XYZ_CENTER + cubes.reshape(*cubes.shape[:-1], self.n_cubes, 3) / XYZ_SCALE
 
+    def observed_pinch(self, observations: np.ndarray) -> np.ndarray:
+        """`[..., 3]` the pinch site's position (m) read from observations `[..., state_dim]`."""
+        pinch = np.asarray(observations, dtype=np.float64)[..., PINCH_DIMS]
+        return XYZ_CENTER + pinch / XYZ_SCALE
+
     def observe(self, data: mujoco.MjData) -> np.ndarray:
         """OGBench's observation `[state_dim]` (float64) of `data` (of `self.model`), bit for bit
         what the env returns in the same state."""
@@ -454,14 +504,15 @@ class ManipSpaceSpec:
             cube_yaw = np.array([lie.SO3(wxyz=quat).compute_yaw_radians()])
             ob += [(qpos[adr : adr + 3] - XYZ_CENTER) * XYZ_SCALE, quat]
             ob += [np.cos(cube_yaw), np.sin(cube_yaw)]
-        if self.scene:
+        if self.n_buttons:
             states = self.button_states(data)
-            for b in range(BUTTONS):
+            for b in range(self.n_buttons):
                 ob += [
                     np.eye(2)[states[b]],
                     qpos[i["button_qpos"][b] : i["button_qpos"][b] + 1] * BUTTON_SCALE,
                     qvel[i["button_dof"][b] : i["button_dof"][b] + 1].copy(),
                 ]
+        if self.scene:
             for part, scale in (("drawer", DRAWER_SCALE), ("window", WINDOW_SCALE)):
                 ob += [
                     qpos[i[f"{part}_qpos"] : i[f"{part}_qpos"] + 1] * scale,
@@ -514,22 +565,24 @@ class ManipSpaceSpec:
 
     def control_step(self, model: mujoco.MjModel, data: mujoco.MjData, action: np.ndarray) -> None:
         """One control step of `action [5]`, bit for bit `env.step` after OGBench's evaluation
-        clip to [-1, 1]: joint targets, 25 MuJoCo steps, `mj_rnePostConstraint`; the scene's
-        button toggles, locks and forward pass; the new readings into user data.
+        clip to [-1, 1]: joint targets, 25 MuJoCo steps, `mj_rnePostConstraint`; the button
+        toggles (a puzzle's press toggles the grid neighbours too), the scene's locks and the
+        forward pass; the new readings into user data.
 
         `model` is this spec's model or a copy of it (its drawer / window damping is written)."""
         action = np.clip(np.array(action), -1, 1)
         self._apply_locks(model, data)
         self.joint_targets(data, action)
-        if self.scene:
+        if self.n_buttons:
             pressed_before = [data.qpos[a] for a in self._ids["button_qpos"]]
         mujoco.mj_step(model, data, nstep=round(self.dt / model.opt.timestep))
         mujoco.mj_rnePostConstraint(model, data)
-        if self.scene:
+        if self.n_buttons:
             for b, adr in enumerate(self._ids["button_qpos"]):
                 if pressed_before[b] > BUTTON_PRESSED and data.qpos[adr] <= BUTTON_PRESSED:
-                    k = READINGS + b
-                    data.userdata[k] = (data.userdata[k] + 1) % 2
+                    for toggled in self._ids["toggles"][b]:
+                        k = READINGS + toggled
+                        data.userdata[k] = (data.userdata[k] + 1) % 2
             self._apply_locks(model, data)
             mujoco.mj_forward(model, data)
         data.userdata[:READINGS] = self._readings(data)
@@ -542,6 +595,9 @@ class ManipSpaceSpec:
         for k, info in enumerate(reference_env(self.env_id).unwrapped.task_infos, start=1):
             if self.scene:
                 init, goal = info["init"], info["goal"]
+            elif self.grid is not None:
+                init = {"button_states": info["init_button_states"]}
+                goal = {"button_states": info["goal_button_states"]}
             else:
                 init, goal = {"block_xyzs": info["init_xyzs"]}, {"block_xyzs": info["goal_xyzs"]}
             out.append(
@@ -557,12 +613,22 @@ class ManipSpaceSpec:
     def task_start(self, task_id: int, seed: int) -> TaskStart:
         """Start task `task_id` (1 to 5) as OGBench's evaluation does: `env.reset(seed=seed,
         options={'task_id': task_id})` (random arm pose, cube positions +-0.01 m and random yaw,
-        drawer / window +-0.01), captured exactly (see `TaskStart` for what the seed leaves out).
+        drawer / window +-0.01; a puzzle's buttons exactly the task's), captured exactly (see
+        `TaskStart` for what the seed leaves out).
         """
         task = self.tasks()[int(task_id) - 1]
         env = evaluation_env(self.env_id)
         observation, info = env.reset(seed=int(seed), options={"task_id": int(task_id)})
         u = env.unwrapped
+        if self.grid is not None:  # no cubes: the goal is the button states
+            goal = ObjectConfig(np.zeros((0, 3)), np.array(u._target_button_states, np.int64))
+            return TaskStart(
+                task=task,
+                physics=self.state_of_env(env),
+                observation=np.array(observation),
+                goal=goal,
+                goal_observation=np.array(info["goal"]),
+            )
         targets = np.array([u.data.mocap_pos[m] for m in u._cube_target_mocap_ids])
         if self.scene:
             goal = ObjectConfig(
@@ -583,39 +649,43 @@ class ManipSpaceSpec:
 
     def success(self, data: mujoco.MjData, goal: ObjectConfig) -> bool:
         """OGBench's success (`_compute_successes`, all of them) of state `data` (of
-        `self.model`) for `goal`: each cube's position within 0.04 of its goal; the scene's
-        buttons in their goal states, drawer and window within 0.04 of theirs."""
+        `self.model`) for `goal`: each cube's position within 0.04 of its goal; the buttons (the
+        scene's, a puzzle's) in their goal states; the scene's drawer and window within 0.04 of
+        theirs."""
         i = self._ids
         for adr, target in zip(i["cube_qpos"], goal.block_xyzs, strict=True):
             if not np.linalg.norm(data.qpos[adr : adr + 3] - target) <= SUCCESS_TOLERANCE:
                 return False
+        if self.n_buttons:
+            assert goal.button_states is not None
+            if not np.array_equal(self.button_states(data), goal.button_states):
+                return False
         if not self.scene:
             return True
-        assert goal.button_states is not None
-        if not np.array_equal(self.button_states(data), goal.button_states):
-            return False
         drawer = np.abs(data.qpos[i["drawer_qpos"]] - goal.drawer_pos) <= SUCCESS_TOLERANCE
         window = np.abs(data.qpos[i["window_qpos"]] - goal.window_pos) <= SUCCESS_TOLERANCE
         return bool(drawer and window)
 
     def goal_vector(self, goal: ObjectConfig) -> np.ndarray:
         """`[len(goal_dims)]`: `goal` in observation units at `goal_dims` (cube positions scaled
-        as observed; scene: button states 0 / 1, drawer * 18, window * 15)."""
+        as observed; scene and puzzle: button states 0 / 1; scene: drawer * 18, window * 15)."""
         parts = [((np.asarray(goal.block_xyzs) - XYZ_CENTER) * XYZ_SCALE).ravel()]
-        if self.scene:
+        if self.n_buttons:
             assert goal.button_states is not None
             parts.append(np.asarray(goal.button_states, dtype=np.float64))
+        if self.scene:
             parts.append(np.array([goal.drawer_pos * DRAWER_SCALE, goal.window_pos * WINDOW_SCALE]))
         return np.concatenate(parts)
 
     @property
     def goal_scale(self) -> tuple[float, ...]:
         """Per goal dim, its success tolerance in observation units, what planners divide the
-        distance to a goal by (`GoalCost`): cube positions 0.04 m x 10 = 0.4; the scene's button
-        states 0.5 (`BUTTON_GOAL_SCALE`), drawer 0.04 x 18 = 0.72, window 0.04 x 15 = 0.6."""
+        distance to a goal by (`GoalCost`): cube positions 0.04 m x 10 = 0.4; button states (the
+        scene's, a puzzle's) 0.5 (`BUTTON_GOAL_SCALE`); the scene's drawer 0.04 x 18 = 0.72,
+        window 0.04 x 15 = 0.6."""
         scale = [SUCCESS_TOLERANCE * XYZ_SCALE] * (3 * self.n_cubes)
+        scale += [BUTTON_GOAL_SCALE] * self.n_buttons
         if self.scene:
-            scale += [BUTTON_GOAL_SCALE] * BUTTONS
             scale += [SUCCESS_TOLERANCE * DRAWER_SCALE, SUCCESS_TOLERANCE * WINDOW_SCALE]
         return tuple(scale)
 
@@ -630,10 +700,12 @@ class ManipSpaceSpec:
         n = 3 * self.n_cubes
         cubes = (at[..., :n] - goals[..., :n]).reshape(*at.shape[:-1], self.n_cubes, 3)
         ok = (np.linalg.norm(cubes, axis=-1) <= SUCCESS_TOLERANCE * XYZ_SCALE).all(-1)
+        b = n + self.n_buttons  # the buttons' dims are n .. b - 1, the scene's drawer b
+        if self.n_buttons:
+            ok &= (at[..., n:b] == goals[..., n:b]).all(-1)
         if self.scene:
-            ok &= (at[..., n : n + 2] == goals[..., n : n + 2]).all(-1)
-            ok &= np.abs(at[..., n + 2] - goals[..., n + 2]) <= SUCCESS_TOLERANCE * DRAWER_SCALE
-            ok &= np.abs(at[..., n + 3] - goals[..., n + 3]) <= SUCCESS_TOLERANCE * WINDOW_SCALE
+            ok &= np.abs(at[..., b] - goals[..., b]) <= SUCCESS_TOLERANCE * DRAWER_SCALE
+            ok &= np.abs(at[..., b + 1] - goals[..., b + 1]) <= SUCCESS_TOLERANCE * WINDOW_SCALE
         return ok
 
 

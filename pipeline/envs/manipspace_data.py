@@ -5,25 +5,29 @@ Follows `data_gen_scripts/generate_manipspace.py` of OGBench's repository (read 
 loop is written here, as the script needs absl and writes files):
 
 - the env is made with `mode='data_collection'`, `terminate_at_goal=False`; each reset draws a
-  random arm pose, random cube poses (scene: also button states, drawer and window positions)
-  and a first subtask ("target"): in the cube envs a cube to move to a random place, or (cube-
-  double, probability `p_stack`) onto the other cube; in the scene one of cube / button / drawer /
-  window (`SceneEnv.set_new_target`'s probabilities);
+  random arm pose, random cube poses (scene: also button states, drawer and window positions;
+  puzzle: random button states) and a first subtask ("target"): in the cube envs a cube to move
+  to a random place, or (cube-double, probability `p_stack`) onto the other cube; in the scene one
+  of cube / button / drawer / window (`SceneEnv.set_new_target`'s probabilities); in a puzzle a
+  random button to press (`PuzzleEnv.set_new_target`: its state flipped is the target);
 - one oracle per subtask kind drives the arm: `play` uses the plan oracles
   (`oracles/plan/*_plan.py`: keyframes interpolated, plus Gaussian noise `noise` x the action
   scale smoothed over time with `gaussian_filter1d(sigma=noise_smoothing)`); `noisy` the Markov
   oracles (`oracles/markov/*_markov.py`, `min_norm` 0.4) plus per-step Gaussian noise of std
   `xi x [1, 1, 1, 3, 10]`, `xi ~ U(0, noise)` drawn per episode, and with probability
-  `p_random_action` (0.1) a uniform random action instead; actions are clipped to [-1, 1];
+  `p_random_action` (0.1; the puzzles' `commands.sh` lines 0.2) a uniform random action
+  instead; actions are clipped to [-1, 1]. A puzzle has one kind, the button, and its oracle
+  keeps the gripper closed (`gripper_always_closed=True`, the script's puzzle setting);
 - when the oracle says it is done (plan oracles: the plan ran out; Markov oracles: the arm
   reached its random final pose, or its step limit passed: cube 200, button 100, drawer and
   window 75) the env draws the next subtask;
-- `p_stack` is 0 for cube-single, U(0, 0.25) per episode for cube-double, 0.5 for the scene;
+- `p_stack` is 0 for cube-single, U(0, 0.25) per episode for cube-double, 0.5 for the scene
+  and the puzzles (which ignore it);
 - scene episodes in which the cube leaves the visible table (y >= 0.29, or y <= -0.3 outside the
   drawer's height 0.06 - 0.08) are thrown away and redone;
 - OGBench's sizes: 1000 episodes x 1001 steps, plus a 100-episode validation file, for each of
-  cube-single, cube-double and scene, play and noisy. Here the sizes are arguments with CPU-sized
-  defaults.
+  cube-single, cube-double, scene, puzzle-3x3 and puzzle-4x4, play and noisy (puzzle-4x5: 3000,
+  puzzle-4x6: 5000 episodes). Here the sizes are arguments with CPU-sized defaults.
 
 Deterministic for a seed: each episode (and each redo) has its own `SeedSequence` child, which
 seeds numpy's global generator (the oracles' and the script's source of randomness) and the
@@ -39,7 +43,8 @@ env's own observation bit for bit except after a subtask switch in the cube envs
 `set_new_target` refreshes the pinch site's pose (`mj_kinematics`) that the env's observation
 had read one physics step stale: the recorded observation is the refreshed one, which is what
 the next step acts from (so a state always holds its observation, and replaying the actions
-through `control_step` reproduces the episode exactly).
+through `control_step` reproduces the episode exactly). In the scene and the puzzles the env's
+post-step forward pass has already refreshed it: there the two are the same.
 """
 
 from __future__ import annotations
@@ -54,6 +59,7 @@ import numpy as np
 
 from pipeline.envs.ant import global_seed
 from pipeline.envs.manipspace import (
+    BUTTON_DIM,
     CUBE_DIM,
     HEALTHY_MARGIN,
     PROPRIO_DIM,
@@ -74,6 +80,7 @@ NOISE = 0.1
 NOISE_SMOOTHING = 0.5
 MIN_NORM = 0.4
 P_RANDOM_ACTION = {"play": 0.0, "noisy": 0.1}
+PUZZLE_P_RANDOM_ACTION = {"play": 0.0, "noisy": 0.2}  # the puzzles' lines of `commands.sh`
 MARKOV_NOISE_SHAPE = np.array([1.0, 1.0, 1.0, 3.0, 10.0])  # x xi per action dim
 SCENE_P_STACK = 0.5
 DOUBLE_P_STACK = (0.0, 0.25)
@@ -93,13 +100,32 @@ def collection_env(env_id: str) -> gymnasium.Env:
     )
 
 
+def subtask_kinds(spec: ManipSpaceSpec) -> tuple[str, ...]:
+    """The subtask kinds (`SUBTASKS`) the env's data collection draws: the cube envs' cube, the
+    scene's four, a puzzle's button."""
+    if spec.scene:
+        return SUBTASKS
+    return ("button",) if spec.grid is not None else ("cube",)
+
+
+def default_p_random_action(spec: ManipSpaceSpec, recipe: str) -> float:
+    """The script's `p_random_action` for `recipe` in this env (`commands.sh`)."""
+    return (PUZZLE_P_RANDOM_ACTION if spec.grid is not None else P_RANDOM_ACTION)[recipe]
+
+
 @functools.cache
 def _oracles(
-    env: gymnasium.Env, scene: bool, recipe: str, noise: float, smoothing: float, min_norm: float
+    env: gymnasium.Env,
+    kinds: tuple[str, ...],
+    recipe: str,
+    noise: float,
+    smoothing: float,
+    min_norm: float,
 ) -> dict[str, Any]:
     """The script's oracles: one per subtask kind the env draws (one set per process and
-    settings: each episode resets the ones it uses)."""
-    kinds = SUBTASKS if scene else ("cube",)
+    settings: each episode resets the ones it uses). A puzzle's button oracle keeps the gripper
+    closed, as the script's puzzle branch makes it."""
+    puzzle = kinds == ("button",)
     if recipe == "play":
         from ogbench.manipspace.oracles.plan.button_plan import ButtonPlanOracle
         from ogbench.manipspace.oracles.plan.cube_plan import CubePlanOracle
@@ -108,6 +134,9 @@ def _oracles(
 
         plans = {"cube": CubePlanOracle, "button": ButtonPlanOracle,
                  "drawer": DrawerPlanOracle, "window": WindowPlanOracle}  # fmt: skip
+        if puzzle:
+            return {"button": ButtonPlanOracle(env=env, noise=noise, noise_smoothing=smoothing,
+                                               gripper_always_closed=True)}  # fmt: skip
         return {k: plans[k](env=env, noise=noise, noise_smoothing=smoothing) for k in kinds}
     from ogbench.manipspace.oracles.markov.button_markov import ButtonMarkovOracle
     from ogbench.manipspace.oracles.markov.cube_markov import CubeMarkovOracle
@@ -116,8 +145,12 @@ def _oracles(
 
     markovs = {"cube": CubeMarkovOracle, "button": ButtonMarkovOracle,
                "drawer": DrawerMarkovOracle, "window": WindowMarkovOracle}  # fmt: skip
+    if puzzle:
+        return {"button": ButtonMarkovOracle(env=env, min_norm=min_norm,
+                                             gripper_always_closed=True)}  # fmt: skip
     oracles = {k: markovs[k](env=env, min_norm=min_norm) for k in kinds}
-    if scene:  # as the script (though the oracle's reset sets its step limit back to 200)
+    if kinds == SUBTASKS:  # the scene, as the script (though the oracle's reset sets its step
+        # limit back to 200)
         oracles["cube"] = CubeMarkovOracle(env=env, min_norm=min_norm, max_step=100)
     return oracles
 
@@ -142,14 +175,15 @@ def iter_generate(
     one at a time as they are made; the arguments are checked when the first one is asked for.
 
     Args:
-        env_id: `cube-single-v0`, `cube-double-v0` or `scene-v0`.
+        env_id: `cube-single-v0`, `cube-double-v0`, `scene-v0` or a puzzle (`puzzle-3x3-v0`, ...).
         recipe: "play" (plan oracles, smoothed noise) or "noisy" (Markov oracles, Gaussian noise).
         episodes, episode_steps: The size (OGBench: 1000 x 1001, plus 100 validation episodes).
         seed: Everything drawn is a function of it.
         noise: Play: the plan noise level; noisy: the maximum of the per-episode `xi`.
         noise_smoothing: Play: the noise's smoothing (Gaussian filter sigma, steps).
         min_norm: Noisy: the Markov oracles' minimum relative-position norm.
-        p_random_action: Probability of a uniform random action (default play 0, noisy 0.1).
+        p_random_action: Probability of a uniform random action (default play 0, noisy 0.1;
+            the puzzles' noisy 0.2).
 
     Yields:
         One dict per episode: `observations [T+1, S]`, `actions [T, 5]`, `physics [T+1, P]`
@@ -199,8 +233,10 @@ def generate_episode(
     be generated in several processes."""
     spec = manipspace_spec(env_id)
     env = collection_env(env_id)
-    p_random = P_RANDOM_ACTION[recipe] if p_random_action is None else float(p_random_action)
-    agents = _oracles(env, spec.scene, recipe, noise, noise_smoothing, min_norm)
+    p_random = (
+        default_p_random_action(spec, recipe) if p_random_action is None else float(p_random_action)
+    )
+    agents = _oracles(env, subtask_kinds(spec), recipe, noise, noise_smoothing, min_norm)
     return _healthy_episode(env, spec, agents, recipe, episode_steps, episode_seed, noise, p_random)
 
 
@@ -303,6 +339,20 @@ def leaves_table(cubes: np.ndarray) -> bool:
     return bool((y >= SCENE_FAR_RIGHT_Y).any() or far_left.any())
 
 
+def observed_buttons(spec: ManipSpaceSpec, observations: np.ndarray) -> np.ndarray:
+    """`[T, n_buttons]` the button states observations `[T, state_dim]` show (the "on" dim of
+    each one-hot; `[T, 0]` without buttons)."""
+    base = PROPRIO_DIM + CUBE_DIM * spec.n_cubes
+    return np.asarray(observations)[:, [base + BUTTON_DIM * b + 1 for b in range(spec.n_buttons)]]
+
+
+def state_buttons(spec: ManipSpaceSpec, physics: np.ndarray) -> np.ndarray:
+    """`[T, n_buttons]` the button states physics states `[T, physics_dim]` hold (their last
+    `n_buttons` numbers, `ManipSpaceSpec.physics_state`)."""
+    physics = np.asarray(physics)
+    return physics[:, physics.shape[1] - spec.n_buttons :]
+
+
 def out_of_bounds(cubes: np.ndarray) -> np.ndarray:
     """`[T]` bool per step of cube positions `[T, n, 3]`: some cube beyond OGBench's workspace
     bounds +- 0.2 m (the scene env's own test for a cube thrown out by an instability)."""
@@ -317,8 +367,9 @@ def check(episodes: list[dict[str, Any]], spec: ManipSpaceSpec) -> dict[str, Any
     finished with the subtask achieved (`success` at that step), per kind and per 1000 steps.
     Problems (each makes `ok` False): arrays of the wrong shapes; a cube out of bounds
     (`out_of_bounds`) in a recorded state or observation; an observation whose cube positions
-    are not its state's (`(xyz - [0.425, 0, 0]) * 10`); for the scene, a cube off the table
-    (OGBench's health rule, `generate` redoes such episodes).
+    are not its state's (`(xyz - [0.425, 0, 0]) * 10`), or whose button states (the scene's, a
+    puzzle's) are not its state's; for the scene, a cube off the table (OGBench's health rule,
+    `generate` redoes such episodes).
 
     Returns:
         `{"ok", "problems": [str], "episodes", "steps", "finished", "succeeded",
@@ -329,6 +380,7 @@ def check(episodes: list[dict[str, Any]], spec: ManipSpaceSpec) -> dict[str, Any
     per_episode = []
     by_subtask = {k: {"finished": 0, "succeeded": 0} for k in SUBTASKS}
     cube_cols = [PROPRIO_DIM + CUBE_DIM * i + k for i in range(spec.n_cubes) for k in range(3)]
+    drawn = subtask_kinds(spec)
     for e, ep in enumerate(episodes):
         obs, physics, actions = ep["observations"], ep["physics"], ep["actions"]
         steps = len(actions)
@@ -347,7 +399,7 @@ def check(episodes: list[dict[str, Any]], spec: ManipSpaceSpec) -> dict[str, Any
                                 "out_of_bounds_steps": 0})  # fmt: skip
             continue
         cubes = spec.cube_positions(physics)
-        observed = XYZ_CENTER + obs[:, cube_cols].reshape(-1, spec.n_cubes, 3) / XYZ_SCALE
+        observed = XYZ_CENTER + obs[:, cube_cols].reshape(steps + 1, spec.n_cubes, 3) / XYZ_SCALE
         outside = out_of_bounds(cubes) | out_of_bounds(observed)
         if outside.any():
             problems.append(
@@ -355,8 +407,10 @@ def check(episodes: list[dict[str, Any]], spec: ManipSpaceSpec) -> dict[str, Any
                 f"steps, first at step {int(np.argmax(outside))}"
             )
         if not np.array_equal(obs[:, cube_cols], ((cubes - XYZ_CENTER) * XYZ_SCALE).reshape(
-                steps + 1, -1)):  # fmt: skip
+                steps + 1, 3 * spec.n_cubes)):  # fmt: skip
             problems.append(f"episode {e}: observed cube positions differ from the states'")
+        if not np.array_equal(observed_buttons(spec, obs), state_buttons(spec, physics)):
+            problems.append(f"episode {e}: observed button states differ from the states'")
         if spec.scene and leaves_table(cubes):
             problems.append(f"episode {e}: the cube leaves the table (OGBench's health rule)")
         if np.abs(actions).max(initial=0.0) > 1.0:
@@ -385,6 +439,6 @@ def check(episodes: list[dict[str, Any]], spec: ManipSpaceSpec) -> dict[str, Any
         "succeeded": succeeded,
         "finished_per_1000_steps": finished * per_1000,
         "succeeded_per_1000_steps": succeeded * per_1000,
-        "by_subtask": {k: v for k, v in by_subtask.items() if spec.scene or k == "cube"},
+        "by_subtask": {k: v for k, v in by_subtask.items() if k in drawn},
         "per_episode": per_episode,
     }

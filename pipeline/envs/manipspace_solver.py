@@ -16,6 +16,15 @@ An oracle runs its plan to the end before the next subtask is chosen. The plans 
 (OGBench's `play` data adds noise; the reference is the clean script). Episodes start from the
 reset seeds the agents' episodes use (`pipeline.evaluation.tasks.manipulation_episodes`) and end
 at OGBench's success or its step limit, as OGBench's evaluation does.
+
+A puzzle ("Lights Out") has one kind of subtask, a button press (OGBench's button plan oracle,
+the gripper kept closed as in its puzzle data). Which buttons to press is solved exactly: a press
+of button j flips every button it toggles (`puzzle_toggles`), so the presses x (one or none per
+button) that turn the current states c into the goal g solve A x = g - c over GF(2), A the
+toggle matrix; `lights_out_presses` solves it by Gaussian elimination and, where A is singular
+(4x4: 4 free presses), takes the solution with the fewest presses. After every press the system
+is solved again from the states the env reports (a press that failed or landed twice is made
+good), and the next press is the one nearest the gripper.
 """
 
 from __future__ import annotations
@@ -34,7 +43,9 @@ from pipeline.envs.manipspace import (
     ManipSpaceSpec,
     ObjectConfig,
     make_manipspace_env,
+    puzzle_toggles,
 )
+from pipeline.errors import UserError
 
 # A cube counts as placed within half OGBench's tolerance (the subtask is redone otherwise).
 PLACED = SUCCESS_TOLERANCE / 2
@@ -44,6 +55,9 @@ STACKED_XY = 0.02  # two cubes this close in x-y are stacked (OGBench's `top_blo
 OCCUPIED = 0.05  # a goal this close to another cube's position is taken
 # Where a cube is set aside when every wrong cube's goal is taken (x-y, m; the table's middle band).
 ASIDE = np.array([[0.5, -0.2], [0.35, -0.2], [0.5, 0.2], [0.35, 0.2], [0.5, 0.0], [0.35, 0.0]])
+# The most free presses whose combinations `lights_out_presses` tries for the fewest presses
+# (2^this solutions; OGBench's grids have at most 4).
+MAX_FREE_PRESSES = 16
 
 
 @dataclass(frozen=True)
@@ -181,6 +195,84 @@ def oracle_info(env: Any, info: dict[str, Any], sub: Subtask) -> dict:
     return out
 
 
+def toggle_matrix(rows: int, cols: int) -> np.ndarray:
+    """`[n, n]` (uint8) over GF(2): entry (i, j) is 1 when a press of button j flips button i."""
+    n = rows * cols
+    matrix = np.zeros((n, n), dtype=np.uint8)
+    for j, flipped in enumerate(puzzle_toggles(rows, cols)):
+        matrix[flipped, j] = 1
+    return matrix
+
+
+def lights_out_presses(grid: tuple[int, int], current: Any, goal: Any) -> np.ndarray:
+    """The buttons to press once each (`[n]` bool, row-major) that turn button states `current`
+    into `goal` in a rows x cols puzzle, with the fewest presses (module docstring).
+
+    Raises:
+        UserError: no presses do it (Lights Out on a singular grid, e.g. 4x4, has unreachable
+            state pairs).
+    """
+    rows, cols = grid
+    current = np.asarray(current, dtype=np.int64).ravel()
+    goal = np.asarray(goal, dtype=np.int64).ravel()
+    n = rows * cols
+    if current.shape != (n,) or goal.shape != (n,):
+        raise ValueError(f"button states of a {rows}x{cols} puzzle have {n} entries")
+    system = np.concatenate([toggle_matrix(rows, cols), ((goal - current) % 2)[:, None]], axis=1)
+    system = system.astype(np.uint8)
+    pivots: list[int] = []
+    for col in range(n):  # reduced row echelon form over GF(2)
+        below = np.flatnonzero(system[len(pivots) :, col])
+        if not below.size:
+            continue
+        row = len(pivots) + int(below[0])
+        system[[len(pivots), row]] = system[[row, len(pivots)]]
+        others = np.flatnonzero(system[:, col])
+        others = others[others != len(pivots)]
+        system[others] ^= system[len(pivots)]
+        pivots.append(col)
+    if system[len(pivots) :, n].any():
+        raise UserError(
+            f"no button presses turn the {rows}x{cols} puzzle's states "
+            f"{current.tolist()} into {goal.tolist()}: Lights Out on this grid cannot reach "
+            "that goal from there"
+        )
+    free = [c for c in range(n) if c not in pivots]
+    if len(free) > MAX_FREE_PRESSES:
+        raise ValueError(f"{len(free)} free presses: too many solutions to search")
+    base = np.zeros(n, dtype=np.uint8)
+    base[pivots] = system[: len(pivots), n]
+    kernel = []
+    for f in free:  # with free press f alone, each pivot press becomes its row's entry
+        v = np.zeros(n, dtype=np.uint8)
+        v[f] = 1
+        v[pivots] = system[: len(pivots), f]
+        kernel.append(v)
+    best = base
+    for mask in range(1, 2 ** len(free)):
+        x = base.copy()
+        for k, v in enumerate(kernel):
+            if mask >> k & 1:
+                x ^= v
+        if x.sum() < best.sum():
+            best = x
+    return best.astype(bool)
+
+
+def next_press(info: dict[str, Any], goal: np.ndarray, grid: tuple[int, int]) -> Subtask | None:
+    """The press the oracle makes next toward the puzzle's `goal` button states from the state
+    in `info` (a task-mode env's): of the presses `lights_out_presses` finds, the button whose
+    top is nearest the gripper; None when the states are the goal's."""
+    n = grid[0] * grid[1]
+    states = [int(info[f"privileged/button_{i}_state"]) for i in range(n)]
+    presses = np.flatnonzero(lights_out_presses(grid, states, goal))
+    if not presses.size:
+        return None
+    effector = np.asarray(info["proprio/effector_pos"])
+    tops = np.array([info[f"privileged/button_{i}_top_pos"] for i in presses])
+    return Subtask("button", int(presses[np.argmin(np.linalg.norm(tops - effector, axis=1))]))
+
+
 def _plan_oracles(env: Any) -> dict[str, Any]:
     from ogbench.manipspace.oracles.plan.button_plan import ButtonPlanOracle
     from ogbench.manipspace.oracles.plan.cube_plan import CubePlanOracle
@@ -245,6 +337,43 @@ def run_episode(env: Any, task_id: int, reset_seed: int, seed: int, scene: bool)
                 sub_info = oracle_info(env, info, sub)
 
 
+def run_puzzle_episode(env: Any, task_id: int, reset_seed: int, seed: int) -> OracleEpisode:
+    """`run_episode` in a puzzle: OGBench's button plan oracle (noise-free, gripper closed)
+    pressing the buttons `next_press` picks, one plan at a time, until OGBench's success or
+    step limit."""
+    from ogbench.manipspace.oracles.plan.button_plan import ButtonPlanOracle
+
+    observation, info = env.reset(seed=int(reset_seed), options={"task_id": int(task_id)})
+    u = env.unwrapped
+    grid = (int(u._num_rows), int(u._num_cols))
+    goal = np.array(u._target_button_states, dtype=np.int64)
+    oracle = ButtonPlanOracle(env=env, noise=0.0, gripper_always_closed=True)
+    steps = subtasks = 0
+    with _numpy_seeded(seed):
+        while True:
+            sub = next_press(_with_button_tops(env, info), goal, grid)
+            if sub is None:  # unreachable: the env ends the episode at the goal states
+                raise RuntimeError(f"{env.spec.id}: at the goal states without OGBench's success")
+            sub_info = oracle_info(env, info, sub)
+            oracle.reset(observation, sub_info)
+            subtasks += 1
+            while not oracle.done:
+                action = oracle.select_action(observation, sub_info)
+                observation, _, terminated, truncated, info = env.step(action)
+                steps += 1
+                if info["success"] or terminated or truncated:
+                    return OracleEpisode(bool(info["success"]), steps, subtasks)
+                sub_info = oracle_info(env, info, sub)
+
+
+def _with_button_tops(env: Any, info: dict[str, Any]) -> dict[str, Any]:
+    """`info` with each puzzle button's top position (`privileged/button_<i>_top_pos`)."""
+    u = env.unwrapped
+    tops = {f"privileged/button_{i}_top_pos": u._data.site(f"btntop_{i}").xpos.copy()
+            for i in range(u._num_buttons)}  # fmt: skip
+    return info | tops
+
+
 def episode_seeds(seed: int, task_id: int, k: int) -> tuple[int, int]:
     """(episode seed, reset seed) of episode `k` of task `task_id`: those of
     `pipeline.evaluation.tasks.manipulation_episodes`, so the oracle starts where the agents do
@@ -262,6 +391,9 @@ def evaluate(spec: ManipSpaceSpec, episodes: int, seed: int) -> dict[str, list[O
         runs = []
         for k in range(episodes):
             episode_seed, reset_seed = episode_seeds(seed, task.task_id, k)
-            runs.append(run_episode(env, task.task_id, reset_seed, episode_seed, spec.scene))
+            if spec.grid is not None:
+                runs.append(run_puzzle_episode(env, task.task_id, reset_seed, episode_seed))
+            else:
+                runs.append(run_episode(env, task.task_id, reset_seed, episode_seed, spec.scene))
         out[f"{OGBENCH_PREFIX}task{task.task_id}"] = runs
     return out

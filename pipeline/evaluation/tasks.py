@@ -14,7 +14,8 @@
   (`MazeTasks.expand`). In OGBench mazes (`pipeline.envs.ogbench`), and in OGBench's
   manipulation envs (`manipulation_episodes`): each episode starts in the exact physics state
   OGBench's evaluation reset leaves (`ManipSpaceSpec.task_start`, seeded per episode), its goal
-  is the task's object configuration at the spec's `goal_dims` (`goal_vector`). The maze tasks
+  is the task's object configuration at the spec's `goal_dims` (`goal_vector`; in a puzzle the
+  goal button states of OGBench's `set_tasks`, from its init button states). The maze tasks
   (corners, random_goal, goal) are refused there.
 - `kitchen`: the Franka kitchen's D4RL task set (`kitchen_episodes`): its four subtasks from the
   env's reset state, exactly (`KitchenSpec.task_start`); reported under the task set's name

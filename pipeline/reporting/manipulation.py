@@ -53,14 +53,16 @@ from pipeline.reporting.common import (
 from pipeline.reporting.common import write_page as write_results_page
 from pipeline.reporting.manipulation_ladder import render_ladder
 
-DATASETS = ("cube-single-play", "cube-double-play", "scene-play")
+DATASETS = ("cube-single-play", "cube-double-play", "scene-play", "puzzle-3x3-play",
+            "puzzle-4x4-play")  # fmt: skip
 TASKS = [f"ogbench-task{i}" for i in range(1, 6)]
 OVERALL = "ogbench"
 # the pipeline's runs, runs/<run>/, in row order, and the rows of runs not named after their agent
 AGENTS = ("oposm", "oposm_value", "llp", "gcbc", "oracle")
 RUN_LABELS = {"oposm_value": "oposm + value"}  # OPOSM planning with a learned value (not the paper)
 ENV_IDS = {"cube-single-play": "cube-single-v0", "cube-double-play": "cube-double-v0",
-           "scene-play": "scene-v0"}  # fmt: skip
+           "scene-play": "scene-v0", "puzzle-3x3-play": "puzzle-3x3-v0",
+           "puzzle-4x4-play": "puzzle-4x4-v0"}  # fmt: skip
 
 
 # --- reading the runs ---------------------------------------------------------------------------

@@ -1,5 +1,5 @@
 """Rerun recordings of deployed episodes in OGBench's manipulation envs (cube-single, cube-double,
-scene), and their run overview.
+scene, the puzzles), and their run overview.
 
 An episode's recording: a 3-D view of the table (metres, z up, framed on the workspace) with the
 arm, the cubes and the scene's parts at every step (`pipeline.viz.manip_scene`: MuJoCo's
@@ -9,7 +9,10 @@ predicted cube and pinch positions (green for the TAWM's skill ends, pink for LL
 the right: the outcome and the task in words beside a legend, the distance to the goal in success
 tolerances (`pipeline.evaluation.goals`: 1 is at the tolerance), the plan cost, the actions.
 Timelines `step` and `sim_time`, as the maze recordings. The scene's goal states of its buttons,
-drawer and window are in the text; their part of the distance is in the distance plot.
+drawer and window are in the text; their part of the distance is in the distance plot. A puzzle
+has no cube: its buttons are drawn in their state's colour at every step (red 0, blue 1, as in
+OGBench), each goal state as a wire box around its button in that state's colour, and the text
+has the grid's states row by row at the start, the goal and the end.
 
 The overview holds the success table and the success bars of the maze overview, without a map.
 
@@ -39,13 +42,17 @@ from pipeline.viz.deploy import ACTION_COLORS, RADIUS_LINE, application_id, reco
 from pipeline.viz.manip_scene import (
     PINCH,
     ArmPoses,
+    button_legend,
     legend_view,
+    log_button_goals,
+    log_buttons,
     log_cubes,
     log_goals,
     log_manip_legend,
     log_robot,
     log_table,
     log_to_goal,
+    observed_buttons,
     robot_legend,
     to_metres,
     workspace_view,
@@ -80,10 +87,14 @@ def goal_cubes(result: EpisodeResult, spec: ManipSpaceSpec) -> np.ndarray:
 
 def _legend(result: EpisodeResult, spec: ManipSpaceSpec) -> list[tuple[str, Color, Any]]:
     items = robot_legend(spec.n_cubes) + [("gripper path", PATH, "line")]
+    if spec.grid is not None:
+        items += button_legend()
     if result.trace.plans:
         name = "LLP: predicted" if result.agent == "llp" else "TAWM: predicted"
         color = LLP_PLAN if result.agent == "llp" else PLAN
-        items += [(f"{name} cubes", color, "dot"), (f"{name} gripper", color, "line")]
+        if spec.n_cubes:
+            items.append((f"{name} cubes", color, "dot"))
+        items.append((f"{name} gripper", color, "line"))
     return items
 
 
@@ -94,9 +105,14 @@ def _log_states(
     states = np.asarray(result.trace.states)  # [n + 1, sd]
     steps = np.arange(len(states))
     times = _times(steps, spec.dt)
-    log_robot(rec, ArmPoses(spec)(states), times)
-    cubes = log_cubes(rec, spec, states, times)
-    log_to_goal(rec, cubes, goal_cubes(result, spec), times)
+    poses = ArmPoses(spec)(states)
+    log_robot(rec, poses, times)
+    if spec.n_cubes:
+        cubes = log_cubes(rec, spec, states, times)
+        log_to_goal(rec, cubes, goal_cubes(result, spec), times)
+    if spec.grid is not None:
+        assert poses.button_tops is not None
+        log_buttons(rec, spec, states, poses.button_tops, times)
     pinch = to_metres(states[:, PINCH])
     every = max(1, len(steps) // PATH_UPDATES)
     at = sorted({*range(0, len(steps), every), *result.trace.replan_steps, len(steps) - 1})
@@ -142,10 +158,12 @@ def _log_plans(rec: rr.RecordingStream, result: EpisodeResult, spec: ManipSpaceS
         rec.set_time("step", sequence=t)
         rec.set_time("sim_time", duration=t * spec.dt)
         predicted = plan[1:]  # [P, sd]: s_0 is the state planned from
-        rec.log(
-            "world/plan/cubes",
-            rr.Points3D(cube_positions(predicted, spec).reshape(-1, 3), radii=0.008, colors=color),
-        )
+        if spec.n_cubes:
+            rec.log(
+                "world/plan/cubes",
+                rr.Points3D(cube_positions(predicted, spec).reshape(-1, 3), radii=0.008,
+                            colors=color),
+            )  # fmt: skip
         rec.log(
             "world/plan/pinch",
             rr.LineStrips3D([to_metres(plan[:, PINCH])], radii=0.002, colors=(*color, 160)),
@@ -161,6 +179,26 @@ def _objects(state: np.ndarray, spec: ManipSpaceSpec) -> str:
     at = np.asarray(state)[list(spec.goal_dims[3 * spec.n_cubes :])]
     drawer, window = at[2] / DRAWER_SCALE, at[3] / WINDOW_SCALE
     return f"buttons {at[0]:.0f}, {at[1]:.0f}; drawer {drawer:.3f} m, window {window:.3f} m"
+
+
+def _grid_text(states: np.ndarray, spec: ManipSpaceSpec) -> str:
+    """A puzzle's button states `[n_buttons]` row by row (`110 101 011`; a prediction rounded)."""
+    assert spec.grid is not None
+    rows, cols = spec.grid
+    on = (np.asarray(states, dtype=np.float64) >= 0.5).astype(int).reshape(rows, cols)
+    return " ".join("".join(str(v) for v in row) for row in on)
+
+
+def _puzzle_lines(result: EpisodeResult, spec: ManipSpaceSpec) -> list[str]:
+    """The text's lines on a puzzle's buttons: start, goal, end, how many end right."""
+    states = np.asarray(result.trace.states)
+    goal = np.asarray(result.spec.goal)
+    start, end = observed_buttons(spec, states[0]), observed_buttons(spec, states[-1])
+    right = int((np.round(end) == goal).sum())
+    return [
+        f"- buttons (rows, 1 on): start {_grid_text(start, spec)}, goal {_grid_text(goal, spec)}",
+        f"- at the end: {_grid_text(end, spec)}, {right} of {spec.n_buttons} in their goal state",
+    ]
 
 
 def _summary(result: EpisodeResult, spec: ManipSpaceSpec) -> str:
@@ -189,6 +227,8 @@ def _summary(result: EpisodeResult, spec: ManipSpaceSpec) -> str:
             f"- cube {i} ends {100 * np.linalg.norm(end - goal):.1f} cm from its goal "
             f"(success within {100 * SUCCESS_TOLERANCE:.0f} cm)"
         )
+    if spec.grid is not None:
+        lines += _puzzle_lines(r, spec)
     if spec.scene:
         goal_state = np.full(spec.state_dim, np.nan)
         goal_state[list(spec.goal_dims)] = s.goal
@@ -240,7 +280,10 @@ def write_manip_episode_recording(
             rec.send_recording_name(recording_name(result))
             rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
             log_table(rec, spec)
-            log_goals(rec, goal_cubes(result, spec))
+            if spec.n_cubes:
+                log_goals(rec, goal_cubes(result, spec))
+            if spec.grid is not None:
+                log_button_goals(rec, spec, np.asarray(result.spec.goal))
             log_manip_legend(rec, legend)
             rec.log(
                 "summary",

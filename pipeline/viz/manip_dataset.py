@@ -1,12 +1,12 @@
-"""A manipulation dataset (OGBench's cube and scene envs) as a Rerun view: the demonstrations on
-the table in 3-D, what `oposm view <file>.mcap` opens for these envs (`pipeline.viz.dataset`
-dispatches here).
+"""A manipulation dataset (OGBench's cube, scene and puzzle envs) as a Rerun view: the
+demonstrations on the table in 3-D, what `oposm view <file>.mcap` opens for these envs
+(`pipeline.viz.dataset` dispatches here).
 
 Static: every episode's cube paths (one colour per episode) and, fainter, its gripper path. On
 the `time` timeline (the dataset's clock) and the `episode` timeline: the arm, the cubes and the
-scene's parts as they move (`pipeline.viz.manip_scene`), the current episode's gripper path and,
-where the dataset records goals, the goal of each cube. Beside it a legend, `oposm inspect`'s
-summary and the actions as plots.
+scene's parts as they move (`pipeline.viz.manip_scene`), a puzzle's buttons in their state's
+colour (red 0, blue 1), the current episode's gripper path and, where the dataset records goals,
+the goal of each cube. Beside it a legend, `oposm inspect`'s summary and the actions as plots.
 """
 
 from __future__ import annotations
@@ -21,8 +21,10 @@ from pipeline.envs.manipspace import ManipSpaceSpec
 from pipeline.viz.manip_scene import (
     PINCH,
     ArmPoses,
+    button_legend,
     cube_color,
     legend_view,
+    log_buttons,
     log_cubes,
     log_goals,
     log_manip_legend,
@@ -74,6 +76,8 @@ def manip_legend(spec: ManipSpaceSpec, goals: bool) -> list[tuple[str, Color, An
     items = robot_legend(spec.n_cubes) if goals else robot_legend(spec.n_cubes)[:2]
     if not goals:
         items += [(f"cube {i}", cube_color(i), "dot") for i in range(spec.n_cubes)]
+    if spec.grid is not None:
+        items += button_legend(goals=False)
     return items + [
         ("cube paths (colour: episode)", EPISODE_COLORS[0], "line"),
         ("gripper paths", faded(EPISODE_COLORS[0], 0.4), "line"),
@@ -98,8 +102,12 @@ def log_manip_episode(
         rr.TimeColumn("time", duration=ep.time),
         rr.TimeColumn("episode", sequence=np.full(len(ep), ep.index)),
     ]
-    log_robot(rec, poser(obs), times)
-    cubes = log_cubes(rec, spec, obs, times)
+    poses = poser(obs)
+    log_robot(rec, poses, times)
+    cubes = log_cubes(rec, spec, obs, times) if spec.n_cubes else np.zeros((len(obs), 0, 3))
+    if spec.grid is not None:
+        assert poses.button_tops is not None
+        log_buttons(rec, spec, obs, poses.button_tops, times)
     pinch = to_metres(obs[:, PINCH])
     first = [
         rr.TimeColumn("time", duration=ep.time[:1]),

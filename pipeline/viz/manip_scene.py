@@ -7,13 +7,15 @@ and runs `mj_kinematics`; the arm is a thick line through its link bodies (base,
 arm, forearm, the three wrist links, the gripper's base), the two fingers thinner lines through
 theirs. The gripper's other joints follow the opening by a fixed coupling (`_finger_joints`):
 close to the real linkage, which MuJoCo solves only by simulating it. The scene's buttons,
-drawer and window are the bounding boxes of their geoms in each body's frame, moved by a per-step
-transform of the body; their joints come from the observation too.
+drawer and window, and a puzzle's buttons, are the bounding boxes of their geoms in each body's
+frame, moved by a per-step transform of the body; their joints come from the observation too.
 
 A cube is a solid box in its colour (its orientation from the observation); its goal a wire box
 of the success tolerance in the same colour with a label, joined to the cube by a thin line, so
-which cube goes where reads at a glance. The legend is a small 2-D view of its own: Rerun's 3-D
-views have none.
+which cube goes where reads at a glance. A puzzle's button caps are solid boxes in their state's
+colour at every step (OGBench's: red 0, blue 1); a button's goal state is a wire box around its
+cap in the goal state's colour, so a cap whose colour is not its box's is still wrong. The legend
+is a small 2-D view of its own: Rerun's 3-D views have none.
 """
 
 from __future__ import annotations
@@ -55,6 +57,11 @@ FINGER_BODIES = tuple(
 # The scene's moving and fixed parts (bodies with geoms; the drawer's virtual handles have none).
 SCENE_BODIES = ("buttonbox_0", "button_0", "buttonbox_1", "button_1", "drawer_base",
                 "drawer_link", "window", "windowb_a", "windowb_b")  # fmt: skip
+# A puzzle's button states' colours (OGBench's `PuzzleEnv`: red 0, blue 1).
+BUTTON_OFF: Color = (245, 66, 84)
+BUTTON_ON: Color = (89, 140, 232)
+BUTTON_CAP = np.array([0.018, 0.018, 0.005])  # half sizes of a drawn cap (radius 0.0172 m)
+BUTTON_GOAL = np.array([0.026, 0.026, 0.012])  # half sizes of a goal state's wire box
 ARM = (70, 75, 90)
 JOINT = (40, 40, 48)
 TABLE = (205, 200, 188)
@@ -77,6 +84,27 @@ def cube_color(i: int) -> Color:
     return CUBE_COLORS[i % len(CUBE_COLORS)]
 
 
+def button_colors(states: np.ndarray) -> np.ndarray:
+    """`[..., 3]` uint8 colours of button states `[...]` (0 or 1; a prediction is rounded)."""
+    on = np.asarray(states, dtype=np.float64) >= 0.5
+    return np.where(on[..., None], BUTTON_ON, BUTTON_OFF).astype(np.uint8)
+
+
+def scene_bodies(spec: ManipSpaceSpec) -> tuple[str, ...]:
+    """The bodies of the env's parts besides the robot and the cubes: the scene's, or each
+    puzzle button's box and button."""
+    if spec.scene:
+        return SCENE_BODIES
+    return tuple(f"{part}_{i}" for i in range(spec.n_buttons) for part in ("buttonbox", "button"))
+
+
+def observed_buttons(spec: ManipSpaceSpec, observations: np.ndarray) -> np.ndarray:
+    """`[..., n_buttons]` the button states observations `[..., state_dim]` show."""
+    base = PROPRIO_DIM + CUBE_DIM * spec.n_cubes
+    cols = [base + BUTTON_DIM * b + 1 for b in range(spec.n_buttons)]
+    return np.asarray(observations)[..., cols]
+
+
 def _finger_joints(model: mujoco.MjModel) -> list[tuple[int, float]]:
     """(qpos address, gain on the driver angle) of each gripper joint: the spring links turn with
     the driver, the followers against it (keeping the pads parallel), the couplers stay near 0."""
@@ -94,12 +122,14 @@ class Poses:
     Attributes:
         arm: `[n, len(ARM_BODIES) + 1, 3]`: the link bodies, then the pinch site.
         fingers: `[n, 2, 4, 3]`: per finger the gripper base, then `FINGER_BODIES`.
-        bodies: `SCENE_BODIES` name -> (position `[n, 3]`, quaternion `[n, 4]` x y z w).
+        bodies: `scene_bodies` name -> (position `[n, 3]`, quaternion `[n, 4]` x y z w).
+        button_tops: `[n, n_buttons, 3]`: each button's top (site `btntop_<i>`) as pressed.
     """
 
     arm: np.ndarray
     fingers: np.ndarray
     bodies: dict[str, tuple[np.ndarray, np.ndarray]]
+    button_tops: np.ndarray | None = None
 
 
 class ArmPoses:
@@ -111,13 +141,14 @@ class ArmPoses:
         body = self.model.body
         self.arm_ids = [body(n).id for n in ARM_BODIES]
         self.finger_ids = [[body(n).id for n in finger] for finger in FINGER_BODIES]
-        self.scene_ids = {n: body(n).id for n in SCENE_BODIES} if spec.scene else {}
+        self.scene_ids = {n: body(n).id for n in scene_bodies(spec)}
+        self.top_ids = [self.model.site(f"btntop_{i}").id for i in range(spec.n_buttons)]
         self.fingers = _finger_joints(self.model)
         self.arm_qpos = spec._ids["arm_qpos"]
 
     def joint_positions(self, observations: np.ndarray) -> np.ndarray:
         """`qpos [n, nq]` of observations `[n, state_dim]`: the arm, the gripper (coupled to its
-        opening), the cubes and the scene's joints, all at once."""
+        opening), the cubes, the buttons and the scene's joints, all at once."""
         spec, obs = self.spec, np.asarray(observations, dtype=np.float64)
         qpos = np.tile(self.model.qpos0, (len(obs), 1))
         qpos[:, self.arm_qpos] = obs[:, :6]
@@ -128,12 +159,13 @@ class ArmPoses:
             at = PROPRIO_DIM + CUBE_DIM * i
             qpos[:, adr : adr + 3] = to_metres(obs[:, at : at + 3])
             qpos[:, adr + 3 : adr + 7] = obs[:, at + 3 : at + 7]
+        base = PROPRIO_DIM + CUBE_DIM * spec.n_cubes
+        for b, adr in enumerate(spec._ids.get("button_qpos", [])):
+            qpos[:, adr] = obs[:, base + BUTTON_DIM * b + 2] / BUTTON_SCALE
         if spec.scene:
-            base = PROPRIO_DIM + CUBE_DIM * spec.n_cubes
-            for b, adr in enumerate(spec._ids["button_qpos"]):
-                qpos[:, adr] = obs[:, base + BUTTON_DIM * b + 2] / BUTTON_SCALE
-            qpos[:, spec._ids["drawer_qpos"]] = obs[:, base + 2 * BUTTON_DIM] / DRAWER_SCALE
-            qpos[:, spec._ids["window_qpos"]] = obs[:, base + 2 * BUTTON_DIM + 2] / WINDOW_SCALE
+            after = base + BUTTON_DIM * spec.n_buttons
+            qpos[:, spec._ids["drawer_qpos"]] = obs[:, after] / DRAWER_SCALE
+            qpos[:, spec._ids["window_qpos"]] = obs[:, after + 2] / WINDOW_SCALE
         return qpos
 
     def __call__(self, observations: np.ndarray) -> Poses:
@@ -143,10 +175,12 @@ class ArmPoses:
         qpos = self.joint_positions(observations)
         n, nbody = len(observations), self.model.nbody
         xpos, xquat = np.empty((n, nbody, 3)), np.empty((n, nbody, 4))
+        tops = np.empty((n, len(self.top_ids), 3))
         for t in range(n):
             self.data.qpos[:] = qpos[t]
             mujoco.mj_kinematics(self.model, self.data)
             xpos[t], xquat[t] = self.data.xpos, self.data.xquat
+            tops[t] = self.data.site_xpos[self.top_ids]
         pinch = to_metres(observations[:, PINCH])[:, None]
         arm = np.concatenate([xpos[:, self.arm_ids], pinch], axis=1)
         base = np.broadcast_to(xpos[:, self.arm_ids[-1], None], (n, 1, 3))
@@ -156,7 +190,7 @@ class ArmPoses:
         bodies = {  # MuJoCo's quaternions are w x y z, Rerun's x y z w
             name: (xpos[:, b], xquat[:, b][:, [1, 2, 3, 0]]) for name, b in self.scene_ids.items()
         }
-        return Poses(arm, fingers, bodies)
+        return Poses(arm, fingers, bodies, tops)
 
 
 def _geom_boxes(model: mujoco.MjModel, body: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -176,7 +210,7 @@ def _geom_boxes(model: mujoco.MjModel, body: int) -> tuple[np.ndarray, np.ndarra
 def log_table(rec: rr.RecordingStream, spec: ManipSpaceSpec, entity: str = "world") -> None:
     """The table (a slab under the arm's base and the scene), the outline of the env's walls on
     it (where the cubes stay), the pinch site's workspace (a faint wire box: where the gripper
-    may go) and the scene's parts in their own frames (static)."""
+    may go) and the scene's or a puzzle's parts in their own frames (static)."""
     model = spec.model
     walls = [g for g in range(model.ngeom) if model.geom(g).name.startswith("wall_")]
     data = mujoco.MjData(model)
@@ -212,15 +246,14 @@ def log_table(rec: rr.RecordingStream, spec: ManipSpaceSpec, entity: str = "worl
         ),
         static=True,
     )
-    if spec.scene:
-        for name in SCENE_BODIES:
-            centres, halves, quats = _geom_boxes(model, model.body(name).id)
-            rec.log(
-                f"{entity}/scene/{name}",
-                rr.Boxes3D(centers=centres, half_sizes=halves, quaternions=quats,
-                           colors=FIXTURE, radii=0.001),
-                static=True,
-            )  # fmt: skip
+    for name in scene_bodies(spec):
+        centres, halves, quats = _geom_boxes(model, model.body(name).id)
+        rec.log(
+            f"{entity}/scene/{name}",
+            rr.Boxes3D(centers=centres, half_sizes=halves, quaternions=quats,
+                       colors=FIXTURE, radii=0.001),
+            static=True,
+        )  # fmt: skip
 
 
 def log_robot(
@@ -319,6 +352,68 @@ def log_to_goal(
         strips=list(strips.reshape(-1, 2, 3))).partition(np.full(n, k)))  # fmt: skip
     rec.log(entity, rr.LineStrips3D.from_fields(
         colors=[(*cube_color(i), 150) for i in range(k)], radii=0.0015), static=True)  # fmt: skip
+
+
+def log_buttons(
+    rec: rr.RecordingStream,
+    spec: ManipSpaceSpec,
+    observations: np.ndarray,
+    tops: np.ndarray,
+    times: list[rr.TimeColumn],
+    entity: str = "world/buttons",
+) -> None:
+    """A puzzle's button caps at every step: solid boxes at their tops `[n, n_buttons, 3]` (as
+    pressed) in the colour of the state each observation shows."""
+    n, k = tops.shape[:2]
+    centres = tops - [0.0, 0.0, BUTTON_CAP[2]]
+    colors = button_colors(observed_buttons(spec, observations))
+    rec.send_columns(
+        entity,
+        times,
+        rr.Boxes3D.columns(centers=centres.reshape(-1, 3), colors=colors.reshape(-1, 3))
+        .partition(np.full(n, k)),
+    )  # fmt: skip
+    rec.log(entity, rr.Boxes3D.from_fields(half_sizes=[BUTTON_CAP] * k, fill_mode="solid"),
+            static=True)  # fmt: skip
+
+
+def button_rest_tops(spec: ManipSpaceSpec) -> np.ndarray:
+    """`[n_buttons, 3]` each button's top (site `btntop_<i>`) unpressed (m)."""
+    data = mujoco.MjData(spec.model)
+    mujoco.mj_kinematics(spec.model, data)
+    return np.array([data.site_xpos[spec.model.site(f"btntop_{i}").id]
+                     for i in range(spec.n_buttons)])  # fmt: skip
+
+
+def log_button_goals(
+    rec: rr.RecordingStream,
+    spec: ManipSpaceSpec,
+    goal_states: np.ndarray,
+    entity: str = "world/button_goals",
+    static: bool = True,
+) -> None:
+    """Each puzzle button's goal state `[n_buttons]` as a wire box around its cap in the goal
+    state's colour."""
+    tops = button_rest_tops(spec)
+    rec.log(
+        entity,
+        rr.Boxes3D(
+            centers=tops - [0.0, 0.0, BUTTON_CAP[2]],
+            half_sizes=[BUTTON_GOAL] * len(tops),
+            colors=button_colors(goal_states),
+            radii=0.002,
+        ),
+        static=static,
+    )
+
+
+def button_legend(goals: bool = True) -> list[tuple[str, Color, Any]]:
+    """Legend items of a puzzle's buttons (and their goal states)."""
+    items: list[tuple[str, Color, Any]] = [("button off (0)", BUTTON_OFF, "dot"),
+                                           ("button on (1)", BUTTON_ON, "dot")]  # fmt: skip
+    if goals:
+        items += [("goal: off", BUTTON_OFF, "ring"), ("goal: on", BUTTON_ON, "ring")]
+    return items
 
 
 LEGEND_STEP = 0.1  # between items, in the legend view's units (its bounds follow)

@@ -2,6 +2,7 @@
 one 3-D view per (mode, start state) with the first cube's real paths of the open-loop executions
 (red), where each skill really ended (red dots), the TAWM's chained prediction of each skill's end
 (green dots) and the single-step model's path under the same actions (blue); metres, z up, static.
+A puzzle has no cube: the paths are the gripper's (its pinch site), which carries out the presses.
 """
 
 from __future__ import annotations
@@ -17,13 +18,28 @@ from pipeline.evaluation.open_loop import OpenLoopResult
 from pipeline.io import atomic_path
 from pipeline.viz.maze import PATH, PLAN, SINGLE
 
-VALIDATE_ABOUT = """### Open loop: where skills take the cube
+VALIDATE_ABOUT = """### Open loop: where skills take the {what}
 
 Each view: one held-out start state and one sequence of skills, **prior** (sampled as a plan
 would be) or **posterior** (inferred from the recorded data that follows), run open loop in
-MuJoCo several times. **Red**: the first cube's real paths, dots where each skill ended.
+MuJoCo several times. **Red**: the {whose} real paths, dots where each skill ended.
 **Green**: the TAWM's chained prediction of each skill's end. **Blue**: the single-step model
 rolled forward under the actions really sent. Metres, z up."""
+
+
+def tracked(spec: ManipSpaceSpec, states: np.ndarray) -> np.ndarray:
+    """`[..., 3]` what the view follows in states `[..., state_dim]` (m): the first cube, or in
+    a puzzle (no cube) the gripper's pinch site."""
+    if spec.n_cubes:
+        return spec.observed_cubes(states)[..., 0, :]
+    return spec.observed_pinch(states)
+
+
+def about(spec: ManipSpaceSpec) -> str:
+    """The view's explanation, naming what it follows."""
+    if spec.n_cubes:
+        return VALIDATE_ABOUT.format(what="cube", whose="first cube's")
+    return VALIDATE_ABOUT.format(what="gripper", whose="gripper's (pinch site)")
 
 
 def write_validate_recording(
@@ -37,18 +53,16 @@ def write_validate_recording(
     with atomic_path(path) as tmp:
         try:
             rec.save(tmp)
-            rec.log(
-                "about", rr.TextDocument(VALIDATE_ABOUT, media_type="text/markdown"), static=True
-            )
+            rec.log("about", rr.TextDocument(about(spec), media_type="text/markdown"), static=True)
             for mode, r in v.modes.items():
                 row = []
                 for i in range(n):
                     base = f"{mode}/start_{i}"
                     rows = slice(i * v.repeats, (i + 1) * v.repeats)
-                    real = spec.observed_cubes(r.real[rows])[:, :, 0]  # [R, LH + 1, 3]
+                    real = tracked(spec, r.real[rows])  # [R, LH + 1, 3]
                     ends = real[:, v.horizon :: v.horizon]
-                    tawm = spec.observed_cubes(r.tawm_mean[rows])[:, :, 0]  # [R, L, 3]
-                    single = spec.observed_cubes(r.single_step[rows])[:, :, 0]
+                    tawm = tracked(spec, r.tawm_mean[rows])  # [R, L, 3]
+                    single = tracked(spec, r.single_step[rows])
                     rec.log(
                         f"{base}/real",
                         rr.LineStrips3D(list(real), colors=PATH, radii=0.002),

@@ -5,8 +5,9 @@ file; write our generated episodes in their layout (`write_manipulation_npz`).
 An OGBench manipulation file (`data_gen_scripts/generate_manipspace.py`; e.g.
 `cube-single-play-v0.npz`, 1000 episodes of 1001 steps, and `cube-single-play-v0-val.npz`, 100
 more) holds per step `observations`, `actions`, `terminals` (set on each episode's last step),
-`qpos` and `qvel` (float32: the physics before the step) and, in the scene, `button_states`
-(int64). The `-val.npz` companion, when present, is appended as later episodes.
+`qpos` and `qvel` (float32: the physics before the step) and, in the scene and the puzzles
+(`puzzle-3x3-play-v0.npz`, ...), `button_states` (int64; 2 in the scene, rows x cols in a
+puzzle). The `-val.npz` companion, when present, is appended as later episodes.
 
 **Restoring a state.** A state here (`ManipSpaceSpec.physics_state`) also holds the solver's
 warm start and the "readings" OGBench computes the observation and the next action from (the
@@ -41,7 +42,6 @@ import numpy as np
 
 from pipeline.dataset import Episode
 from pipeline.envs.manipspace import (
-    BUTTONS,
     CONTACT_FORCE_SCALE,
     CUBE_DIM,
     EFFECTOR_DOWN_WXYZ,
@@ -120,8 +120,8 @@ def _sizes(spec: ManipSpaceSpec) -> dict[str, int]:
         "qpos": spec.model.nq,
         "qvel": spec.model.nv,
     }
-    if spec.scene:
-        sizes["button_states"] = BUTTONS
+    if spec.n_buttons:
+        sizes["button_states"] = spec.n_buttons
     return sizes
 
 
@@ -139,7 +139,7 @@ def _misfit(arrays: dict[str, np.ndarray], spec: ManipSpaceSpec) -> str | None:
 
 def _check_arrays(arrays: dict[str, np.ndarray], where: str, spec: ManipSpaceSpec) -> None:
     """Keys, numeric types, lengths and sizes against the env: one-line `UserError`s."""
-    needed = (*REQUIRED, "button_states") if spec.scene else REQUIRED
+    needed = (*REQUIRED, "button_states") if spec.n_buttons else REQUIRED
     for key in needed:
         if key not in arrays:
             raise missing("array", key, arrays, f"{where} (not an OGBench {spec.env_id} file?)")
@@ -151,8 +151,9 @@ def _check_arrays(arrays: dict[str, np.ndarray], where: str, spec: ManipSpaceSpe
         raise UserError(f"{where} holds no steps (empty dataset)")
     why = _misfit(arrays, spec)
     if why is not None:
-        fit = [e for e in MANIPSPACE_ENVS if _misfit(arrays, manipspace_spec(e)) is None]
-        hint = f"set ingest.ogbench.env_id={fit[0]}" if fit else "it is not an OGBench file"
+        fit = next((e for e in MANIPSPACE_ENVS if _misfit(arrays, manipspace_spec(e)) is None),
+                   None)  # fmt: skip
+        hint = f"set ingest.ogbench.env_id={fit}" if fit else "it is not an OGBench file"
         raise UserError(f"{where}: {why}; {hint}")
 
 
@@ -170,7 +171,7 @@ def restore_physics(
     Args:
         time: `[N]` the dataset clock.
         observations: `[N, state_dim]`; qpos `[N, nq]`; qvel `[N, nv]`.
-        button_states: `[N, 2]` (the scene; else None).
+        button_states: `[N, n_buttons]` (the scene, a puzzle; else None).
     """
     n = len(observations)
     yaw = np.arctan2(observations[:, SIN_YAW], observations[:, COS_YAW])
@@ -183,7 +184,7 @@ def restore_physics(
     force[:, 3] = observations[:, CONTACT] * CONTACT_FORCE_SCALE
     pinch = XYZ_CENTER + observations[:, PINCH] / XYZ_SCALE
     parts = [time[:, None], qpos, qvel, np.zeros_like(qvel), pinch, mat, force]
-    if spec.scene:
+    if spec.n_buttons:
         assert button_states is not None
         parts.append(button_states)
     physics = np.concatenate(parts, axis=1).astype(np.float64)
@@ -281,7 +282,7 @@ def _episodes(
             }
             time = clock.next(n)
             obs = rows["observations"]
-            buttons = rows["button_states"] if spec.scene else None
+            buttons = rows["button_states"] if spec.n_buttons else None
             physics = restore_physics(spec, time, obs, rows["qpos"], rows["qvel"], buttons)
             terminals = rows["terminals"].reshape(n) != 0
             yield Episode(index, obs, rows["actions"], time, physics=physics, terminals=terminals)
@@ -304,7 +305,8 @@ def manipulation_episodes(
 def write_manipulation_npz(path: str | Path, episodes: Iterable[Episode], env_id: str) -> int:
     """Write episodes (with exact states, e.g. `open_manipulation`'s) in OGBench's file layout,
     atomically: float32 `observations`, `actions`, `qpos`, `qvel`; bool `terminals` on each
-    episode's last step; the scene's int64 `button_states`. Returns the number of steps."""
+    episode's last step; the int64 `button_states` of the scene and the puzzles. Returns the
+    number of steps."""
     spec = manipspace_spec(env_id)
     nq, nv = spec.model.nq, spec.model.nv
     buttons = 1 + nq + 2 * nv + READINGS  # time, qpos, qvel, warm start, readings
@@ -318,8 +320,8 @@ def write_manipulation_npz(path: str | Path, episodes: Iterable[Episode], env_id
         columns["terminals"].append(terminals)
         columns["qpos"].append(ep.physics[:, 1 : 1 + nq].astype(np.float32))
         columns["qvel"].append(ep.physics[:, 1 + nq : 1 + nq + nv].astype(np.float32))
-        if spec.scene:
-            columns["button_states"].append(ep.physics[:, buttons : buttons + BUTTONS]
+        if spec.n_buttons:
+            columns["button_states"].append(ep.physics[:, buttons : buttons + spec.n_buttons]
                                             .astype(np.int64))  # fmt: skip
     arrays = {k: np.concatenate(v) for k, v in columns.items() if v}
     with atomic_path(path) as tmp, open(tmp, "wb") as f:

@@ -1,5 +1,5 @@
-"""OGBench's manipulation datasets (cube-single, cube-double, scene; `play` or `noisy`) as an
-ingest source, and the checks of what the ingest stage wrote.
+"""OGBench's manipulation datasets (cube-single, cube-double, scene, the puzzles; `play` or
+`noisy`) as an ingest source, and the checks of what the ingest stage wrote.
 
 Generation is `pipeline.envs.manipspace_data` (OGBench's scripted oracles, its recipe); this
 module turns its episodes into the dataset conventions (`pipeline/dataset.py`) and back:
@@ -12,8 +12,9 @@ module turns its episodes into the dataset conventions (`pipeline/dataset.py`) a
 - `goal_reached` marks the steps at which the oracle finished its subtask with the subtask
   achieved (OGBench's `info['success']` at the step its oracle says it is done): completions;
 - every generated episode is checked (`manipspace_data.check`: shapes, cubes inside the
-  workspace, observations holding their states' cube positions, the scene's health rule) before
-  it is written; a failing one stops the ingest with the check's first problems.
+  workspace, observations holding their states' cube positions and button states, the scene's
+  health rule) before it is written; a failing one stops the ingest with the check's first
+  problems.
 
 OGBench's sizes: 1000 episodes x 1001 steps per dataset (`ingest.episodes`, `ingest.episode_steps`);
 `ingest.ogbench.workers` processes generate them (each episode a function of its own seed, so the
@@ -58,7 +59,9 @@ from pipeline.envs.manipspace_data import (
     episode_seeds,
     generate_episode,
     leaves_table,
+    observed_buttons,
     out_of_bounds,
+    state_buttons,
 )
 from pipeline.errors import UserError
 from pipeline.sources.common import Clock, ImportedDataset, with_progress
@@ -120,13 +123,13 @@ def state_names(spec: ManipSpaceSpec) -> tuple[list[str], list[str]]:
             f"cube{c}_{k}" for k in ("x", "y", "z", "qw", "qx", "qy", "qz", "cos_yaw", "sin_yaw")
         ]
         units += ["0.1 m"] * 3 + ["1"] * 6
+    for b in range(spec.n_buttons):  # the scene's 2, a puzzle's rows x cols (row-major)
+        names += [f"button{b}_off", f"button{b}_on", f"button{b}_pos", f"button{b}_vel"]
+        units += ["1", "1", "1/120 m", "m/s"]
     if spec.scene:
-        for b in range(2):
-            names += [f"button{b}_off", f"button{b}_on", f"button{b}_pos", f"button{b}_vel"]
-            units += ["1", "1", "1/120 m", "m/s"]
         names += ["drawer_pos", "drawer_vel", "window_pos", "window_vel"]
         units += ["1/18 m", "m/s", "1/15 m", "m/s"]
-    expected = PROPRIO_DIM + CUBE_DIM * spec.n_cubes + (2 * BUTTON_DIM + 4 if spec.scene else 0)
+    expected = PROPRIO_DIM + CUBE_DIM * spec.n_cubes + BUTTON_DIM * spec.n_buttons + 4 * spec.scene
     assert len(names) == len(units) == spec.state_dim == expected
     return names, units
 
@@ -278,11 +281,12 @@ def check_manipulation_dataset(
     """Check a manipulation dataset read back from its file, one episode at a time.
 
     Finite values; actions in [-1, 1]; no cube beyond the workspace bounds +- 0.2 m (in a state
-    or an observation); observed cube positions equal to their states'; the scene's cubes on the
-    table; and every `RESTORE_EVERY`-th recorded state (and the last) restored gives its recorded
-    observation bit for bit. Completions (`goal_reached`) are counted. An imported file's states
-    (restored from its qpos / qvel, `manip_npz.py`) are held to float32 rounding
-    (`FLOAT32_TOLERANCE`) instead, and stepped (`restore_errors`) for the report's restore gaps.
+    or an observation); observed cube positions and button states equal to their states'; the
+    scene's cubes on the table; and every `RESTORE_EVERY`-th recorded state (and the last)
+    restored gives its recorded observation bit for bit. Completions (`goal_reached`) are
+    counted. An imported file's states (restored from its qpos / qvel, `manip_npz.py`) are held
+    to float32 rounding (`FLOAT32_TOLERANCE`) instead, and stepped (`restore_errors`) for the
+    report's restore gaps.
 
     Returns:
         The report; `report.problems` empty if all checks passed (at most 20 listed).
@@ -310,7 +314,7 @@ def check_manipulation_dataset(
         if np.abs(ep.actions).max() > 1.0:
             problems.append(f"episode {ep.index}: actions outside [-1, 1]")
         cubes = spec.cube_positions(ep.physics)
-        observed_cubes = ep.observations[:, cube_cols].reshape(-1, spec.n_cubes, 3)
+        observed_cubes = ep.observations[:, cube_cols].reshape(len(ep), spec.n_cubes, 3)
         observed = XYZ_CENTER + observed_cubes / XYZ_SCALE
         outside = out_of_bounds(cubes) | out_of_bounds(observed)
         report.n_outside_bounds += int(outside.sum())
@@ -319,10 +323,13 @@ def check_manipulation_dataset(
                 f"episode {ep.index}: a cube is out of the workspace at "
                 f"{int(outside.sum())} steps, first {int(np.argmax(outside))}"
             )
-        expected = ((cubes - XYZ_CENTER) * XYZ_SCALE).reshape(len(ep), -1)
-        gap = np.abs(ep.observations[:, cube_cols] - expected).max()
+        expected = ((cubes - XYZ_CENTER) * XYZ_SCALE).reshape(len(ep), 3 * spec.n_cubes)
+        gap = np.abs(ep.observations[:, cube_cols] - expected).max(initial=0.0)
         if not gap <= (FLOAT32_TOLERANCE if imported else 0.0):
             problems.append(f"episode {ep.index}: observed cube positions differ from the states'")
+        if not np.array_equal(observed_buttons(spec, ep.observations),
+                              state_buttons(spec, ep.physics)):  # fmt: skip
+            problems.append(f"episode {ep.index}: observed button states differ from the states'")
         if spec.scene and leaves_table(cubes):
             problems.append(f"episode {ep.index}: the cube leaves the table (OGBench's rule)")
         if imported:
