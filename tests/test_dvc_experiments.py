@@ -196,6 +196,8 @@ RERUN_PENDING: dict[str, str] = {
     "pipeline/value/network.py": "(new) the planner's optional learned value (value.weight 0, "
     "the default: the same plans)",
     "stages/oracle.py": "the report holds no wall time (timings/deploy.json); successes unchanged",
+    "pipeline/evaluation/paper_manipulation.py": "OGBench's published puzzle-3x3 / 4x4 rows; the "
+    "cube and scene rows unchanged",
     "pipeline/envs/manipspace_data.py": "OGBench's puzzle recipe (button oracle, gripper closed; "
     "noisy: 20 % random actions); the cube and scene data unchanged",
     "pipeline/viz/manip_validate.py": "validate's view follows the gripper in a puzzle (no cube); "

@@ -18,6 +18,8 @@ _PRINTED = {
     "cube-single-play": ((6, 2), (53, 4), (68, 6), (5, 1), (19, 2), (15, 3)),
     "cube-double-play": ((1, 1), (36, 3), (40, 5), (1, 0), (10, 2), (6, 2)),
     "scene-play": ((5, 1), (42, 4), (51, 4), (5, 1), (19, 2), (38, 3)),
+    "puzzle-3x3-play": ((2, 0), (6, 1), (95, 1), (1, 0), (3, 1), (12, 2)),
+    "puzzle-4x4-play": ((0, 0), (13, 2), (26, 3), (0, 0), (0, 0), (7, 2)),
 }
 OGBENCH_MANIPULATION = {
     dataset: {m: (a / 100, b / 100) for m, (a, b) in zip(OGBENCH_METHODS, row, strict=True)}
