@@ -11,9 +11,15 @@
     python scripts/manipulation_report.py ladder cube-double-play \
         data/experiments/manipulation/cube-double-play \
         --out results/manipulation/cube-double-play-ladder.json
-    # the page, results/manipulation.md + .json, from the datasets' reports and ladders:
+    # one variant of OPOSM on a dataset (its run folder runs/<run>/), from the data root:
+    python scripts/manipulation_report.py variant cube-double-play \
+        data/experiments/manipulation/cube-double-play --run z256 --label "oposm z256" \
+        --what "OPOSM at the paper's model sizes" --settings "-S train.z_dim=256 ..." \
+        --out results/manipulation/cube-double-play-z256.json
+    # the page, results/manipulation.md + .json, from the datasets' reports, ladders, variants:
     python scripts/manipulation_report.py page results/manipulation/<dataset>.json ... \
-        --ladders results/manipulation/cube-double-play-ladder.json --out results
+        --ladders results/manipulation/cube-double-play-ladder.json \
+        --variants results/manipulation/cube-double-play-z256.json --out results
 """
 
 from __future__ import annotations
@@ -23,7 +29,7 @@ import sys
 from pathlib import Path
 
 from pipeline.errors import UserError
-from pipeline.reporting import manipulation, manipulation_ladder
+from pipeline.reporting import manipulation, manipulation_ladder, manipulation_variant
 from pipeline.reporting.common import lock_commands, read, stamp
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -49,6 +55,14 @@ def _ladder(args: argparse.Namespace) -> None:
     print(f"wrote {args.out}")
 
 
+def _variant(args: argparse.Namespace) -> None:
+    report = manipulation_variant.variant_report(
+        args.name, args.root, args.run, args.label, args.what, args.settings, stamp(ROOT)
+    )
+    manipulation.write_dataset(args.out, report)
+    print(f"wrote {args.out}")
+
+
 def _read_all(paths: list[Path], stage: str) -> list:
     reports = []
     for path in paths:
@@ -62,7 +76,9 @@ def _read_all(paths: list[Path], stage: str) -> list:
 def _page(args: argparse.Namespace) -> None:
     reports = _read_all(args.reports, "dataset")
     ladders = _read_all(args.ladders, "ladder")
-    manipulation.write_page(args.out, manipulation.page(reports, stamp(ROOT), ladders))
+    variants = _read_all(args.variants, "variant")
+    results = manipulation.page(reports, stamp(ROOT), ladders, variants)
+    manipulation.write_page(args.out, results)
     print(f"wrote {args.out / 'manipulation.md'} and manipulation.json")
 
 
@@ -79,13 +95,23 @@ def main(argv: list[str] | None = None) -> None:
     ladder.add_argument("name", help=f"one of {', '.join(manipulation.DATASETS)}")
     ladder.add_argument("root", type=Path, help="its data root")
     ladder.add_argument("--out", type=Path, required=True, help="the ladder's JSON file")
+    variant = sub.add_parser("variant", help="one variant of OPOSM on a dataset")
+    variant.add_argument("name", help=f"one of {', '.join(manipulation.DATASETS)}")
+    variant.add_argument("root", type=Path, help="its data root")
+    variant.add_argument("--run", required=True, help="the variant's run folder, runs/<run>/")
+    variant.add_argument("--label", required=True, help="its row's name on the page")
+    variant.add_argument("--what", required=True, help="what it changes, for its verdicts")
+    variant.add_argument("--settings", required=True, help="the overrides it ran with")
+    variant.add_argument("--out", type=Path, required=True, help="the variant's JSON file")
     page = sub.add_parser("page", help="results/manipulation.md + .json from the datasets' reports")
     page.add_argument("reports", type=Path, nargs="+", help="results/manipulation/<dataset>.json")
     page.add_argument("--ladders", type=Path, nargs="*", default=[],
                       help="results/manipulation/<dataset>-ladder.json")  # fmt: skip
+    page.add_argument("--variants", type=Path, nargs="*", default=[],
+                      help="results/manipulation/<key>.json of variant@<key>")  # fmt: skip
     page.add_argument("--out", type=Path, default=ROOT / "results")
     args = parser.parse_args(argv)
-    {"dataset": _dataset, "ladder": _ladder, "page": _page}[args.command](args)
+    {"dataset": _dataset, "ladder": _ladder, "variant": _variant, "page": _page}[args.command](args)
 
 
 if __name__ == "__main__":

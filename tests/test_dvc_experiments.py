@@ -106,9 +106,12 @@ NOT_RUN_YET: dict[str, tuple[tuple[str, ...], str]] = {
         + tuple(f"{stage}@{d}" for d in ("puzzle-3x3-play", "puzzle-4x4-play")
                 for stage in ("ingest", "segment", "train", "dynamics", "gcbc", "bc", "validate",
                               "deploy", "deploy_gcbc", "deploy_llp", "value", "deploy_value",
-                              "oracle", "dataset")),
+                              "oracle", "dataset"))
+        + tuple(f"{stage}@cube-double-play-z256" for stage in ("train_variant",
+                "validate_variant", "deploy_variant", "variant")),
         "OPOSM with a learned value on the datasets whose data roots are rebuilt first; the "
-        "whole chains of OGBench's puzzles (puzzle-3x3-play, puzzle-4x4-play), new, not run",
+        "whole chains of OGBench's puzzles (puzzle-3x3-play, puzzle-4x4-play), new, not run; "
+        "cube-double-play's variant at the paper's model sizes, running",
     ),
 }  # fmt: skip
 
@@ -196,6 +199,8 @@ RERUN_PENDING: dict[str, str] = {
     "pipeline/value/network.py": "(new) the planner's optional learned value (value.weight 0, "
     "the default: the same plans)",
     "stages/oracle.py": "the report holds no wall time (timings/deploy.json); successes unchanged",
+    "pipeline/reporting/manipulation_variant.py": "(new) a variant's report (stage variant@); "
+    "the datasets' reports and ladders unchanged",
     "pipeline/evaluation/paper_manipulation.py": "OGBench's published puzzle-3x3 / 4x4 rows; the "
     "cube and scene rows unchanged",
     "pipeline/envs/manipspace_data.py": "OGBench's puzzle recipe (button oracle, gripper closed; "
