@@ -235,9 +235,9 @@ RERUN_PENDING |= {
     "pipeline/envs/ids.py": "the puzzles' ids join the manipulation ids; constants moved there "
     "before (unchanged outputs)",
     "pipeline/envs/manipspace.py": "puzzle envs added (button grid, neighbour toggles, tasks); "
-    "cube and scene stepping unchanged",
+    "cube and scene stepping unchanged; task starts built in one place (same starts)",
     "pipeline/envs/manipspace_solver.py": "the puzzles' oracle (exact Lights Out presses); the "
-    "cube and scene oracle unchanged",
+    "cube and scene oracle unchanged; one plan-running loop for both (same episodes)",
     "pipeline/evaluation/tasks.py": "docstrings (the puzzles' tasks); unchanged outputs",
 }
 

@@ -622,23 +622,16 @@ class ManipSpaceSpec:
         u = env.unwrapped
         if self.grid is not None:  # no cubes: the goal is the button states
             goal = ObjectConfig(np.zeros((0, 3)), np.array(u._target_button_states, np.int64))
-            return TaskStart(
-                task=task,
-                physics=self.state_of_env(env),
-                observation=np.array(observation),
-                goal=goal,
-                goal_observation=np.array(info["goal"]),
-            )
-        targets = np.array([u.data.mocap_pos[m] for m in u._cube_target_mocap_ids])
-        if self.scene:
-            goal = ObjectConfig(
-                targets,
-                np.array(u._target_button_states, dtype=np.int64),
-                float(u._target_drawer_pos),
-                float(u._target_window_pos),
-            )
         else:
+            targets = np.array([u.data.mocap_pos[m] for m in u._cube_target_mocap_ids])
             goal = ObjectConfig(targets)
+            if self.scene:
+                goal = ObjectConfig(
+                    targets,
+                    np.array(u._target_button_states, dtype=np.int64),
+                    float(u._target_drawer_pos),
+                    float(u._target_window_pos),
+                )
         return TaskStart(
             task=task,
             physics=self.state_of_env(env),

@@ -325,16 +325,29 @@ def run_episode(env: Any, task_id: int, reset_seed: int, seed: int, scene: bool)
             sub = next_subtask(info, goal, scene, axis)
             if sub is None:  # all placed, but not within OGBench's tolerance: wait it out
                 sub = Subtask("cube", 0, goal.block_xyzs[0])
-            oracle, sub_info = oracles[sub.kind], oracle_info(env, info, sub)
-            oracle.reset(observation, sub_info)
-            subtasks += 1
-            while not oracle.done:
-                action = oracle.select_action(observation, sub_info)
-                observation, _, terminated, truncated, info = env.step(action)
-                steps += 1
-                if info["success"] or terminated or truncated:
-                    return OracleEpisode(bool(info["success"]), steps, subtasks)
-                sub_info = oracle_info(env, info, sub)
+            oracle = oracles[sub.kind]
+            observation, info, ran, ended = _run_plan(env, oracle, observation, info, sub)
+            steps, subtasks = steps + ran, subtasks + 1
+            if ended:
+                return OracleEpisode(bool(info["success"]), steps, subtasks)
+
+
+def _run_plan(
+    env: Any, oracle: Any, observation: Any, info: dict[str, Any], sub: Any
+) -> tuple[Any, dict[str, Any], int, bool]:
+    """One oracle's plan for subtask `sub`, run to its end: the last observation and info, the
+    steps taken, and whether the episode ended (OGBench's success, termination or step limit)."""
+    sub_info = oracle_info(env, info, sub)
+    oracle.reset(observation, sub_info)
+    steps = 0
+    while not oracle.done:
+        action = oracle.select_action(observation, sub_info)
+        observation, _, terminated, truncated, info = env.step(action)
+        steps += 1
+        if info["success"] or terminated or truncated:
+            return observation, info, steps, True
+        sub_info = oracle_info(env, info, sub)
+    return observation, info, steps, False
 
 
 def run_puzzle_episode(env: Any, task_id: int, reset_seed: int, seed: int) -> OracleEpisode:
@@ -354,16 +367,10 @@ def run_puzzle_episode(env: Any, task_id: int, reset_seed: int, seed: int) -> Or
             sub = next_press(_with_button_tops(env, info), goal, grid)
             if sub is None:  # unreachable: the env ends the episode at the goal states
                 raise RuntimeError(f"{env.spec.id}: at the goal states without OGBench's success")
-            sub_info = oracle_info(env, info, sub)
-            oracle.reset(observation, sub_info)
-            subtasks += 1
-            while not oracle.done:
-                action = oracle.select_action(observation, sub_info)
-                observation, _, terminated, truncated, info = env.step(action)
-                steps += 1
-                if info["success"] or terminated or truncated:
-                    return OracleEpisode(bool(info["success"]), steps, subtasks)
-                sub_info = oracle_info(env, info, sub)
+            observation, info, ran, ended = _run_plan(env, oracle, observation, info, sub)
+            steps, subtasks = steps + ran, subtasks + 1
+            if ended:
+                return OracleEpisode(bool(info["success"]), steps, subtasks)
 
 
 def _with_button_tops(env: Any, info: dict[str, Any]) -> dict[str, Any]:
