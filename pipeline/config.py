@@ -217,6 +217,14 @@ class TrainParams(_Section):
     tawm_shared_std: bool = Field(
         True, description="One scalar s_T std for all state dims (paper, mazes) vs per dim."
     )
+    tawm_components: int = Field(
+        1,
+        ge=1,
+        description="Gaussians in the TAWM p(s_T | s_0, z): 1 is the paper's; K > 1 a mixture "
+        "of K (a mixture density network), for skills whose outcome has several modes (a grasp "
+        "that holds or slips: one Gaussian's mean lies between them). The planner chains the "
+        "most probable component's mean.",
+    )
     min_std: float = Field(1e-4, gt=0, description="Floor added to every predicted std.")
     batch_size: int = Field(100, ge=1, description="Windows per update step (paper: 100).")
     action_likelihood: Literal["gaussian", "censored"] = Field(

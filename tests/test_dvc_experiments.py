@@ -107,10 +107,12 @@ NOT_RUN_YET: dict[str, tuple[tuple[str, ...], str]] = {
         + tuple(f"{stage}@puzzle-4x4-play"
                 for stage in ("ingest", "segment", "train", "dynamics", "gcbc", "bc", "validate",
                               "deploy", "deploy_gcbc", "deploy_llp", "value", "deploy_value",
-                              "oracle", "dataset")),
+                              "oracle", "dataset"))
+        + tuple(f"{stage}@cube-double-play-mix4"
+                for stage in ("train_variant", "validate_variant", "deploy_variant", "variant")),
         "OPOSM with a learned value on the datasets whose data roots are rebuilt first, and on "
         "puzzle-3x3-play (its value and the rest of its chain have run); the whole chain of "
-        "puzzle-4x4-play, not run",
+        "puzzle-4x4-play, not run; the mixture TAWM's variant on cube-double-play (running)",
     ),
 }  # fmt: skip
 
@@ -240,6 +242,14 @@ RERUN_PENDING |= {
     "cube and scene oracle unchanged; one plan-running loop for both (same episodes)",
     "pipeline/evaluation/tasks.py": "docstrings (the puzzles' tasks); unchanged outputs",
 }
+
+# The mixture TAWM (`train.tawm_components`, default 1: the paper's Gaussian) joins the model,
+# the rollout, the planner's networks and the validation metrics; with one component every
+# computation is the one before (tests/test_tawm_mixture.py, tests/test_planning.py).
+RERUN_PENDING |= {
+    path: "the mixture TAWM (train.tawm_components, 1 by default: the same computations)"
+    for path in ("pipeline/model", "pipeline/planning", "pipeline/training/losses.py")
+}  # fmt: skip
 
 
 def _covered(problem: str) -> str | None:

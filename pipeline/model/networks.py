@@ -1,4 +1,6 @@
-"""Building blocks of appendix C: a 2-layer ReLU trunk and Gaussian mean / std heads.
+"""Building blocks of appendix C: a 2-layer ReLU trunk and Gaussian mean / std heads; and a
+mixture of Gaussians on the same trunk (`MixtureGaussianMLP`, not the paper's) for a TAWM whose
+outcome has several modes.
 
 Under `torch.autocast` (`train.dtype: bfloat16`) the hidden layers multiply in the low precision,
 but each head's output layer, the softplus and everything downstream (log-likelihoods, losses) stay
@@ -85,3 +87,53 @@ class GaussianMLP(nn.Module):
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """`x [..., in_dim]` -> mean, std `[..., out_dim]`."""
         return self.head(self.trunk(x))
+
+
+class MixtureGaussianMLP(nn.Module):
+    """The `GaussianMLP` trunk followed by K diagonal Gaussian components and their mixture
+    weights: a mixture density network (Bishop, 1994). Not the paper's (its TAWM is one Gaussian):
+    where one skill's outcome has several modes (a grasp that holds or slips), one Gaussian's mean
+    lies between them and predicts neither, while a mixture keeps each.
+
+    The mean network outputs the K means; the std network outputs the K stds (one scalar each
+    with `shared_std`) and, beside them, the K mixture logits.
+    """
+
+    def __init__(
+        self,
+        in_dim: int,
+        hidden: int,
+        out_dim: int,
+        components: int,
+        shared_std: bool = False,
+        min_std: float = 1e-4,
+    ):
+        super().__init__()
+        if components < 2:
+            raise ValueError(f"a mixture has at least 2 components, got {components}")
+        self.trunk = trunk(in_dim, hidden)
+        self.std_dim = 1 if shared_std else out_dim
+        self.mean = nn.Sequential(
+            nn.Linear(hidden, hidden), nn.ReLU(), nn.Linear(hidden, components * out_dim)
+        )
+        self.std = nn.Sequential(
+            nn.Linear(hidden, hidden), nn.ReLU(), nn.Linear(hidden, components * (self.std_dim + 1))
+        )
+        self.out_dim, self.components, self.min_std = out_dim, components, min_std
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """`x [..., in_dim]` -> means, stds `[..., K, out_dim]` and logits `[..., K]`."""
+        h = self.trunk(x)
+        k, batch = self.components, h.shape[:-1]
+        means = _float32_output(self.mean, h).unflatten(-1, (k, self.out_dim))
+        std_out = _float32_output(self.std, h)
+        stds = F.softplus(std_out[..., : k * self.std_dim]) + self.min_std
+        stds = stds.unflatten(-1, (k, self.std_dim)).expand(*batch, k, self.out_dim)
+        return means, stds, std_out[..., k * self.std_dim :]
+
+    def readout(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """`x [..., in_dim]` -> mean, std `[..., out_dim]` of the most probable component: the
+        outcome a planner chains (the mixture's mean may be no outcome at all)."""
+        means, stds, logits = self(x)
+        index = logits.argmax(-1)[..., None, None].expand(*means.shape[:-2], 1, self.out_dim)
+        return means.gather(-2, index).squeeze(-2), stds.gather(-2, index).squeeze(-2)

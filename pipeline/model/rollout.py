@@ -5,7 +5,7 @@ From s_0, for k = 0..L-1:
 
     z_k = mu_omega(s_k) + sigma_omega(s_k) * eps_k      (whitened skills eps, `eps=`)
           or the given z_k                              (`z=`)
-    s_{k+1} ~ p_psi(s_T | s_k, z_k) = N(mu_psi, sigma_psi^2):
+    s_{k+1} ~ p_psi(s_T | s_k, z_k) = N(mu_psi, sigma_psi^2) (a mixture's most probable component):
           its mean (the planner's prediction), or a sample (`generator=`, particles)
 
 Inside, everything stays in the train-normalized units the networks work in; raw states come in and
@@ -77,7 +77,7 @@ def rollout_skills(
             skills.append(mu_z + sigma_z * given[:, k])
         else:
             skills.append(given[:, k])
-        mean, std = model.tawm(torch.cat([s, skills[-1]], dim=-1))
+        mean, std = model.tawm_outcome(s, skills[-1])
         if generator is None:
             s = mean
         else:

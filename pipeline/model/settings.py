@@ -35,6 +35,7 @@ def skill_model_config(
         action_high=action_high,
         policy_layer_norm=cfg.policy_trunk == "layernorm_silu",
         policy_ignore_dims=tuple(cfg.policy_ignore_dims),
+        tawm_components=cfg.tawm_components,
     )
 
 

@@ -11,9 +11,9 @@ from dataclasses import asdict, dataclass
 
 import torch
 from torch import nn
-from torch.distributions import Independent, Normal
+from torch.distributions import Categorical, Distribution, Independent, MixtureSameFamily, Normal
 
-from pipeline.model.networks import GaussianHead, GaussianMLP
+from pipeline.model.networks import GaussianHead, GaussianMLP, MixtureGaussianMLP
 from pipeline.readback import Count, Finite, PositiveFinite, Size
 
 
@@ -22,8 +22,9 @@ class SkillModelConfig:
     """Everything needed to rebuild a `SkillModel` (stored as the checkpoint's config.json).
 
     The hyperparameters have no defaults: `train` (`pipeline.config.TrainParams`) holds them and
-    `pipeline.model.settings.skill_model_config` builds this from it. The last three fields
-    default to what a checkpoint written before they existed holds (no bounds, ReLU policy).
+    `pipeline.model.settings.skill_model_config` builds this from it. The fields with defaults
+    default to what a checkpoint written before they existed holds (no bounds, ReLU policy, one
+    Gaussian TAWM).
 
     Attributes:
         state_dim: Size of a state vector.
@@ -45,6 +46,9 @@ class SkillModelConfig:
             unique): what would tell it the next action without the skill (an arm's joint
             velocities under a position controller) goes through z instead. Posterior, prior
             and TAWM see every dim. Empty: the paper's policy, which sees the whole state.
+        tawm_components: Gaussians in p_psi: 1 is the paper's TAWM; K > 1 a mixture of K
+            (`networks.MixtureGaussianMLP`), whose most probable component's mean is what the
+            planner and the open loop chain.
     """
 
     state_dim: Size
@@ -57,6 +61,7 @@ class SkillModelConfig:
     action_high: tuple[Finite, ...] | None = None
     policy_layer_norm: bool = False
     policy_ignore_dims: tuple[Count, ...] = ()
+    tawm_components: Size = 1
 
     def __post_init__(self) -> None:
         ignore = tuple(sorted({int(d) for d in self.policy_ignore_dims}))
@@ -156,9 +161,14 @@ class SkillModel(nn.Module):
         self.policy = GaussianMLP(
             len(seen) + z, h, ad, min_std=config.min_std, layer_norm=config.policy_layer_norm
         )
-        self.tawm = GaussianMLP(
-            sd + z, h, sd, shared_std=config.tawm_shared_std, min_std=config.min_std
-        )
+        if config.tawm_components == 1:
+            self.tawm = GaussianMLP(
+                sd + z, h, sd, shared_std=config.tawm_shared_std, min_std=config.min_std
+            )
+        else:
+            self.tawm = MixtureGaussianMLP(
+                sd + z, h, sd, config.tawm_components, config.tawm_shared_std, config.min_std
+            )
         self.register_buffer("state_mean", torch.zeros(sd))
         self.register_buffer("state_std", torch.ones(sd))
         self.register_buffer("action_mean", torch.zeros(ad))
@@ -223,9 +233,26 @@ class SkillModel(nn.Module):
             return a
         return torch.minimum(torch.maximum(a, self.action_low), self.action_high)
 
-    def tawm_dist(self, s0_n: torch.Tensor, z: torch.Tensor) -> Independent:
-        """p_psi(s_T | s_0, z) over normalized s_T; `s0 [..., sd]`, `z [..., z]`."""
-        return diag_normal(*self.tawm(torch.cat([s0_n, z], dim=-1)))
+    def tawm_dist(self, s0_n: torch.Tensor, z: torch.Tensor) -> Distribution:
+        """p_psi(s_T | s_0, z) over normalized s_T; `s0 [..., sd]`, `z [..., z]`: a diagonal
+        Gaussian, or a mixture of them (`tawm_components`)."""
+        x = torch.cat([s0_n, z], dim=-1)
+        if self.config.tawm_components == 1:
+            return diag_normal(*self.tawm(x))
+        means, stds, logits = self.tawm(x)
+        return MixtureSameFamily(
+            Categorical(logits=logits, validate_args=False),
+            diag_normal(means, stds),
+            validate_args=False,
+        )
+
+    def tawm_outcome(self, s0_n: torch.Tensor, z: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """The TAWM's predicted s_T as a planner chains it: mean, std `[..., sd]` (normalized)
+        of its Gaussian, or of the mixture's most probable component."""
+        x = torch.cat([s0_n, z], dim=-1)
+        if self.config.tawm_components == 1:
+            return self.tawm(x)
+        return self.tawm.readout(x)
 
     # -- raw-unit interface (planning, validation, deployment) ----------------------------------
     @torch.no_grad()
@@ -236,7 +263,7 @@ class SkillModel(nn.Module):
     @torch.no_grad()
     def predict_end(self, s0: torch.Tensor, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Raw `s0 [..., sd]`, `z [..., z]` -> TAWM mean, std of s_T in raw units `[..., sd]`."""
-        mean, std = self.tawm(torch.cat([self.norm_states(s0), z], dim=-1))
+        mean, std = self.tawm_outcome(self.norm_states(s0), z)
         return mean * self.state_std + self.state_mean, std * self.state_std
 
     @torch.no_grad()

@@ -3,7 +3,8 @@
 fewer, larger and in-place operations, because the planner's rollout is the hot path.
 
 - the prior's mean and std heads share one matrix product for their hidden layers (`[h, 2h]`);
-- the TAWM's std network is skipped (the planner chains means);
+- the TAWM's std network is skipped (the planner chains means); of a mixture TAWM
+  (`train.tawm_components`) only its logits are computed, to pick the most probable component;
 - the TAWM's input `[s, z]` is never concatenated: its first layer is two accumulated products;
 - every ReLU runs in place on the product it follows (no extra allocation);
 - optionally in bfloat16 (`dtype`): the weights are cast once, each network's input is cast on the
@@ -19,7 +20,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from pipeline.model.networks import GaussianMLP
+from pipeline.model.networks import GaussianMLP, MixtureGaussianMLP
 from pipeline.model.skill_model import SkillModel
 
 
@@ -53,13 +54,23 @@ class PlannerNets:
         self.tawm_in_z = first.weight[:, self.sd :].t().to(dtype)
         self.tawm_in_b = first.bias.to(dtype)
         self.tawm_trunk2 = _weights(tawm.trunk[2], dtype)
-        self.tawm_head = [_weights(tawm.head.mean[0], dtype), _weights(tawm.head.mean[2], dtype)]
+        self.components = getattr(tawm, "components", 1)
+        mean_net = tawm.mean if self.components > 1 else tawm.head.mean
+        self.tawm_head = [_weights(mean_net[0], dtype), _weights(mean_net[2], dtype)]
+        if self.components > 1:  # the logits: the std network's last K outputs
+            logits = tawm.std[2]
+            self.tawm_logits = [
+                _weights(tawm.std[0], dtype),
+                (logits.weight[-self.components :].t().to(dtype),
+                 logits.bias[-self.components :].to(dtype)),
+            ]  # fmt: skip
         self.hidden = head.mean[0].out_features
         self._check(prior, tawm)
 
-    def _check(self, prior: GaussianMLP, tawm: GaussianMLP) -> None:
-        for net in (prior, tawm):
-            if not (isinstance(net.trunk[1], nn.ReLU) and isinstance(net.head.mean[1], nn.ReLU)):
+    def _check(self, prior: GaussianMLP, tawm: GaussianMLP | MixtureGaussianMLP) -> None:
+        tawm_mean = tawm.mean if isinstance(tawm, MixtureGaussianMLP) else tawm.head.mean
+        for trunk, mean in ((prior.trunk, prior.head.mean), (tawm.trunk, tawm_mean)):
+            if not (isinstance(trunk[1], nn.ReLU) and isinstance(mean[1], nn.ReLU)):
                 raise ValueError("PlannerNets expects the ReLU networks of appendix C")
 
     def prior(self, s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -75,5 +86,12 @@ class PlannerNets:
         s, z = s.to(self.dtype), z.to(self.dtype)
         h = torch.addmm(torch.addmm(self.tawm_in_b, s, self.tawm_in_s), z, self.tawm_in_z).relu_()
         h = _relu_layer(h, self.tawm_trunk2)
-        return torch.addmm(self.tawm_head[1][1], _relu_layer(h, self.tawm_head[0]),
+        mean = torch.addmm(self.tawm_head[1][1], _relu_layer(h, self.tawm_head[0]),
                            self.tawm_head[1][0]).float()  # fmt: skip
+        if self.components == 1:
+            return mean
+        logits = torch.addmm(self.tawm_logits[1][1], _relu_layer(h, self.tawm_logits[0]),
+                             self.tawm_logits[1][0])  # fmt: skip
+        means = mean.unflatten(-1, (self.components, self.sd))
+        index = logits.argmax(-1)[:, None, None].expand(-1, 1, self.sd)
+        return means.gather(1, index).squeeze(1)

@@ -186,7 +186,7 @@ class SkillPlanner:
 
     def _fused(self, cost: StateCost) -> bool:
         """Whether the Triton kernel computes this plan's rollout and cost (`config.kernel`)."""
-        if self.config.kernel != "triton":
+        if self.config.kernel != "triton" or self.model.config.tawm_components > 1:
             return False
         return isinstance(cost, GoalCost) and not cost.fall_penalty and cost.scale is None
 

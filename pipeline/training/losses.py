@@ -174,8 +174,8 @@ def validation_metrics(
         "action_nll": -policy_log_prob(model, batch, z) / horizon,
         "st_nll": -model.tawm_dist(s0, z).log_prob(s_t),
         "kl": kl_divergence(q, prior),
-        "st_error": raw_error(model.tawm_dist(s0, z).mean),
-        "st_error_prior_mean": raw_error(model.tawm_dist(s0, prior.mean).mean),
+        "st_error": raw_error(model.tawm_outcome(s0, z)[0]),
+        "st_error_prior_mean": raw_error(model.tawm_outcome(s0, prior.mean)[0]),
         "st_error_no_model": raw_error(s0),
     }
     if prior_eps is not None:
