@@ -337,6 +337,24 @@ def test_summary_without_any_success_says_so():
     line = format_summary(report).splitlines()[2]
     assert "no episode reached the goal" in line and "None" not in line
     assert "0.0 % within 600 steps" in line
+    assert "within 0.5 m" in line
+
+
+def test_summary_of_object_goals_speaks_in_success_tolerances():
+    spec = EpisodeSpec("ogbench-task1", 0, np.zeros(4), np.ones(2), 0)
+    won = EpisodeResult(spec, steps=90, min_distance=0.5, final_distance=0.5, steps_to_goal=90)
+    gap = {"ogbench-task1": {"distance_gap_m": {"mean": 0.25, "ci95": [0.1, 0.4]}}}
+    agent = {"ogbench-task1": task_summary([won], 0.05), "planning": latency_summary([]),
+             "wall_s": 1.0, "flops_per_replan": None, "optimism_gap": gap}  # fmt: skip
+    report = {
+        "dataset": "d", "env_id": "cube-single-v0", "agents": ["oposm"], "episodes": 1,
+        "wall_s": 1.0, "max_steps": 200, "device": "cpu", "tasks": ["ogbench-task1"],
+        "success_radius": 0.5, "by_agent": {"oposm": agent}, "recordings": "r",
+        "recorded_episodes": 0, "distance_unit": "success tolerances",
+    }  # fmt: skip
+    text = format_summary(report)
+    assert "by the environment's success rule" in text and " m " not in text
+    assert "+0.250 success tolerances [+0.100, +0.400]" in text
 
 
 def test_an_agent_without_its_model_names_the_stage_to_run(project, tmp_path):

@@ -146,6 +146,22 @@ def test_the_scene_moves_its_buttons_drawer_and_window(tmp_path):
     assert len(_values(path, "/world/scene/drawer_link", "translation")) == len(obs)
     ((text,),) = _values(path, "/summary", "text")
     assert "drawer" in text and "plan cost at each replan" not in _views(path)
+    # Its two buttons in their state's colours (OGBench's scene: red 0 locks, white 1), the
+    # goal's button states (after the cube's 3 goal dims) as wire boxes.
+    red, white = list(manip_scene.BUTTON_OFF), list(manip_scene.SCENE_BUTTON_ON)
+    base = 19 + 9 * spec.n_cubes  # the proprio dims, then each cube's
+    states = obs[:, base + 1 : base + 4 * 2 : 4]
+    caps = [[_rgb(c) for c in row] for row in _values(path, "/world/buttons", "colors")]
+    assert caps == [[white if s else red for s in row] for row in states]
+    (goal_colors,) = _values(path, "/world/button_goals", "colors")
+    assert [_rgb(c) for c in goal_colors] == [red, red]  # `_result`'s goal: 0 after the cube
+    labels = {
+        label
+        for e in entities
+        if e.startswith("/legend/") and e.endswith("/label")
+        for label in _values(path, e, "labels")[0]
+    }
+    assert {"button locked (0)", "button unlocked (1)", "goal: unlocked"} <= labels
 
 
 def test_a_manipulation_dataset_opens_in_3d(tmp_path, cube):

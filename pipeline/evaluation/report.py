@@ -46,7 +46,9 @@ def _times(x: float | None) -> str:
     return "n/a" if x is None else f"{x:.2f}x"
 
 
-def _task_line(task: str, t: dict[str, Any], radius: float) -> str:
+def _task_line(task: str, t: dict[str, Any], radius: float, unit: str | None) -> str:
+    """One task's success line; `unit`: the report's `distance_unit` where goals are object
+    configurations judged by the environment's own rule (no radius), else None (metres)."""
     steps = t["steps_to_goal"]["p50"]
     reached = "no episode reached the goal"
     if steps is not None:
@@ -58,7 +60,9 @@ def _task_line(task: str, t: dict[str, Any], radius: float) -> str:
     return (
         f"    {task:12s} success {t['successes']}/{t['episodes']} = {_pct(t['success_rate'])} "
         f"[95 % CI {_pct(t['success_ci95_low'])} - {_pct(t['success_ci95_high'])}] "
-        f"within {radius:g} m{within}; {_pct(t['success_rate_r045'])} within 0.45 m; {reached}"
+        + (f"within {radius:g} m{within}; {_pct(t['success_rate_r045'])} within 0.45 m; "
+           if unit is None else f"by the environment's success rule{within}; ")
+        + reached
         + (f"; {t['errors']} failed episodes" if t["errors"] else "")
         + (f"; fell in {t['fallen']}" if t.get("fallen") else "")
     )
@@ -78,9 +82,9 @@ def _planning_line(r: dict[str, Any]) -> str | None:
     )
 
 
-def _gap_line(gaps: dict[str, Any] | None) -> str | None:
+def _gap_line(gaps: dict[str, Any] | None, unit: str) -> str | None:
     """The optimism gap per task: real minus predicted distance to the goal where a plan's
-    executed part ends (positive: optimistic)."""
+    executed part ends (positive: optimistic), in `unit` (the keys say `_m` whatever it is)."""
     if not gaps:
         return None
     parts = []
@@ -88,7 +92,7 @@ def _gap_line(gaps: dict[str, Any] | None) -> str | None:
         gap = g["distance_gap_m"]
         if gap["mean"] is not None:
             lo, hi = gap["ci95"]
-            parts.append(f"{task} {gap['mean']:+.3f} m [{lo:+.3f}, {hi:+.3f}]")
+            parts.append(f"{task} {gap['mean']:+.3f} {unit} [{lo:+.3f}, {hi:+.3f}]")
     if not parts:
         return None
     return "    optimism     real - predicted distance to goal after each plan: " + "; ".join(parts)
@@ -105,10 +109,13 @@ def format_summary(report: dict[str, Any]) -> str:
     for agent in report["agents"]:
         r = report["by_agent"][agent]
         lines.append(f"  {agent} ({r['wall_s']:.0f} s)")
-        lines += [_task_line(task, r[task], report["success_radius"]) for task in report["tasks"]]
+        unit = report.get("distance_unit")
+        lines += [
+            _task_line(task, r[task], report["success_radius"], unit) for task in report["tasks"]
+        ]
         if (planning := _planning_line(r)) is not None:
             lines.append(planning)
-        if (gap := _gap_line(r.get("optimism_gap"))) is not None:
+        if (gap := _gap_line(r.get("optimism_gap"), unit or "m")) is not None:
             lines.append(gap)
     if (c := report.get("oposm_vs_llp")) is not None:
         t = c["replan_s_p50"]

@@ -87,8 +87,8 @@ def goal_cubes(result: EpisodeResult, spec: ManipSpaceSpec) -> np.ndarray:
 
 def _legend(result: EpisodeResult, spec: ManipSpaceSpec) -> list[tuple[str, Color, Any]]:
     items = robot_legend(spec.n_cubes) + [("gripper path", PATH, "line")]
-    if spec.grid is not None:
-        items += button_legend()
+    if spec.n_buttons:
+        items += button_legend(spec)
     if result.trace.plans:
         name = "LLP: predicted" if result.agent == "llp" else "TAWM: predicted"
         color = LLP_PLAN if result.agent == "llp" else PLAN
@@ -110,7 +110,7 @@ def _log_states(
     if spec.n_cubes:
         cubes = log_cubes(rec, spec, states, times)
         log_to_goal(rec, cubes, goal_cubes(result, spec), times)
-    if spec.grid is not None:
+    if spec.n_buttons:
         assert poses.button_tops is not None
         log_buttons(rec, spec, states, poses.button_tops, times)
     pinch = to_metres(states[:, PINCH])
@@ -282,8 +282,10 @@ def write_manip_episode_recording(
             log_table(rec, spec)
             if spec.n_cubes:
                 log_goals(rec, goal_cubes(result, spec))
-            if spec.grid is not None:
-                log_button_goals(rec, spec, np.asarray(result.spec.goal))
+            if spec.n_buttons:  # the goal: cube positions, button states, drawer, window
+                at = 3 * spec.n_cubes
+                goal = np.asarray(result.spec.goal)[at : at + spec.n_buttons]
+                log_button_goals(rec, spec, goal)
             log_manip_legend(rec, legend)
             rec.log(
                 "summary",

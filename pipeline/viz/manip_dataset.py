@@ -76,8 +76,8 @@ def manip_legend(spec: ManipSpaceSpec, goals: bool) -> list[tuple[str, Color, An
     items = robot_legend(spec.n_cubes) if goals else robot_legend(spec.n_cubes)[:2]
     if not goals:
         items += [(f"cube {i}", cube_color(i), "dot") for i in range(spec.n_cubes)]
-    if spec.grid is not None:
-        items += button_legend(goals=False)
+    if spec.n_buttons:
+        items += button_legend(spec, goals=False)
     return items + [
         ("cube paths (colour: episode)", EPISODE_COLORS[0], "line"),
         ("gripper paths", faded(EPISODE_COLORS[0], 0.4), "line"),
@@ -105,7 +105,7 @@ def log_manip_episode(
     poses = poser(obs)
     log_robot(rec, poses, times)
     cubes = log_cubes(rec, spec, obs, times) if spec.n_cubes else np.zeros((len(obs), 0, 3))
-    if spec.grid is not None:
+    if spec.n_buttons:
         assert poses.button_tops is not None
         log_buttons(rec, spec, obs, poses.button_tops, times)
     pinch = to_metres(obs[:, PINCH])

@@ -57,9 +57,11 @@ FINGER_BODIES = tuple(
 # The scene's moving and fixed parts (bodies with geoms; the drawer's virtual handles have none).
 SCENE_BODIES = ("buttonbox_0", "button_0", "buttonbox_1", "button_1", "drawer_base",
                 "drawer_link", "window", "windowb_a", "windowb_b")  # fmt: skip
-# A puzzle's button states' colours (OGBench's `PuzzleEnv`: red 0, blue 1).
+# Button states' colours as OGBench draws them: red 0, then blue 1 on a puzzle (`PuzzleEnv`) and
+# white 1 in the scene (`SceneEnv`, where 0 locks the drawer or window).
 BUTTON_OFF: Color = (245, 66, 84)
 BUTTON_ON: Color = (89, 140, 232)
+SCENE_BUTTON_ON: Color = (240, 240, 240)
 BUTTON_CAP = np.array([0.018, 0.018, 0.005])  # half sizes of a drawn cap (radius 0.0172 m)
 BUTTON_GOAL = np.array([0.026, 0.026, 0.012])  # half sizes of a goal state's wire box
 ARM = (70, 75, 90)
@@ -84,10 +86,15 @@ def cube_color(i: int) -> Color:
     return CUBE_COLORS[i % len(CUBE_COLORS)]
 
 
-def button_colors(states: np.ndarray) -> np.ndarray:
+def button_on_color(spec: ManipSpaceSpec) -> Color:
+    """The colour of a button in state 1: the scene's white, a puzzle's blue."""
+    return SCENE_BUTTON_ON if spec.scene else BUTTON_ON
+
+
+def button_colors(states: np.ndarray, on_color: Color = BUTTON_ON) -> np.ndarray:
     """`[..., 3]` uint8 colours of button states `[...]` (0 or 1; a prediction is rounded)."""
     on = np.asarray(states, dtype=np.float64) >= 0.5
-    return np.where(on[..., None], BUTTON_ON, BUTTON_OFF).astype(np.uint8)
+    return np.where(on[..., None], on_color, BUTTON_OFF).astype(np.uint8)
 
 
 def scene_bodies(spec: ManipSpaceSpec) -> tuple[str, ...]:
@@ -362,11 +369,11 @@ def log_buttons(
     times: list[rr.TimeColumn],
     entity: str = "world/buttons",
 ) -> None:
-    """A puzzle's button caps at every step: solid boxes at their tops `[n, n_buttons, 3]` (as
-    pressed) in the colour of the state each observation shows."""
+    """The buttons' caps (a puzzle's or the scene's) at every step: solid boxes at their tops
+    `[n, n_buttons, 3]` (as pressed) in the colour of the state each observation shows."""
     n, k = tops.shape[:2]
     centres = tops - [0.0, 0.0, BUTTON_CAP[2]]
-    colors = button_colors(observed_buttons(spec, observations))
+    colors = button_colors(observed_buttons(spec, observations), button_on_color(spec))
     rec.send_columns(
         entity,
         times,
@@ -392,27 +399,29 @@ def log_button_goals(
     entity: str = "world/button_goals",
     static: bool = True,
 ) -> None:
-    """Each puzzle button's goal state `[n_buttons]` as a wire box around its cap in the goal
-    state's colour."""
+    """Each button's goal state `[n_buttons]` as a wire box around its cap in the goal state's
+    colour."""
     tops = button_rest_tops(spec)
     rec.log(
         entity,
         rr.Boxes3D(
             centers=tops - [0.0, 0.0, BUTTON_CAP[2]],
             half_sizes=[BUTTON_GOAL] * len(tops),
-            colors=button_colors(goal_states),
+            colors=button_colors(goal_states, button_on_color(spec)),
             radii=0.002,
         ),
         static=static,
     )
 
 
-def button_legend(goals: bool = True) -> list[tuple[str, Color, Any]]:
-    """Legend items of a puzzle's buttons (and their goal states)."""
-    items: list[tuple[str, Color, Any]] = [("button off (0)", BUTTON_OFF, "dot"),
-                                           ("button on (1)", BUTTON_ON, "dot")]  # fmt: skip
+def button_legend(spec: ManipSpaceSpec, goals: bool = True) -> list[tuple[str, Color, Any]]:
+    """Legend items of the buttons (and their goal states), in the env's colours."""
+    on = button_on_color(spec)
+    off_label, on_label = ("locked", "unlocked") if spec.scene else ("off", "on")
+    items: list[tuple[str, Color, Any]] = [(f"button {off_label} (0)", BUTTON_OFF, "dot"),
+                                           (f"button {on_label} (1)", on, "dot")]  # fmt: skip
     if goals:
-        items += [("goal: off", BUTTON_OFF, "ring"), ("goal: on", BUTTON_ON, "ring")]
+        items += [(f"goal: {off_label}", BUTTON_OFF, "ring"), (f"goal: {on_label}", on, "ring")]
     return items
 
 
