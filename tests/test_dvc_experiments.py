@@ -250,6 +250,13 @@ RERUN_PENDING |= {
     path: "the mixture TAWM (train.tawm_components, 1 by default: the same computations)"
     for path in ("pipeline/model", "pipeline/planning", "pipeline/training/losses.py")
 }  # fmt: skip
+# The Adam loop of the single-step model, BC and GCBC in one place (`training/keep_best.py`): the
+# same draws and updates, the same models (the main job's stages rerun bit for bit).
+RERUN_PENDING |= {
+    path: "the small models' Adam loop shared (training/keep_best.py): the same updates"
+    for path in ("pipeline/training/keep_best.py", "pipeline/training/bc.py",
+                 "pipeline/training/dynamics.py")
+}  # fmt: skip
 # Views and console text only: the scene's buttons coloured by state in the recordings, the
 # deploy summary's distances in success tolerances for object goals (reports unchanged).
 RERUN_PENDING |= {

@@ -12,7 +12,6 @@ negative log-likelihood, best validation NLL kept.
 
 from __future__ import annotations
 
-import logging
 import time
 from typing import Any
 
@@ -25,8 +24,7 @@ from pipeline.model.policy import GaussianPolicy
 from pipeline.model.settings import policy_config
 from pipeline.segments import Segments
 from pipeline.training.dynamics import transition_index
-
-log = logging.getLogger(__name__)
+from pipeline.training.keep_best import adam_keep_best
 
 
 def episode_ends(segments: Segments, steps: np.ndarray) -> np.ndarray:
@@ -109,32 +107,21 @@ def fit_policy(
     policy.to(device)
     data = _Batches(segments, goal_dims, device)
     val = data.get(val_idx, np.random.default_rng([cfg.seed, 1]))
-    optimizer = torch.optim.Adam(policy.net.parameters(), lr=cfg.lr)
-    best: dict[str, Any] = {"val_nll": float("inf")}
-    state = None
     started = time.monotonic()
-    for step in range(1, cfg.max_steps + 1):
+
+    def next_loss() -> torch.Tensor:
         batch = data.get(train_idx[rng.integers(train_idx.size, size=cfg.batch_size)], rng)
-        loss = policy.nll(*batch).mean()
-        if not torch.isfinite(loss):
-            raise UserError(f"policy training diverged at step {step}; lower its lr")
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
-        if step % cfg.eval_every == 0 or step == cfg.max_steps:
-            metrics = evaluate(policy.eval(), *val)
-            policy.train()
-            log.info("policy step %d: val NLL %.3f, action RMSE %.3f", step, *metrics.values())
-            last = step == cfg.max_steps and keep == "last"
-            if state is None or metrics["nll"] < best["val_nll"] or last:
-                state = {k: v.detach().clone() for k, v in policy.state_dict().items()}
-                best = {
-                    "val_nll": metrics["nll"],
-                    "val_action_rmse": metrics["action_rmse"],
-                    "best_step": step,
-                }
-    policy.load_state_dict(state)
-    best |= {
+        return policy.nll(*batch).mean()
+
+    metrics, best_step = adam_keep_best(
+        policy, policy.net.parameters(), next_loss, lambda: evaluate(policy, *val),
+        lr=cfg.lr, max_steps=cfg.max_steps, eval_every=cfg.eval_every, what="policy",
+        fix="lower its lr", keep_last=keep == "last",
+    )  # fmt: skip
+    best: dict[str, Any] = {
+        "val_nll": metrics["nll"],
+        "val_action_rmse": metrics["action_rmse"],
+        "best_step": best_step,
         "steps": cfg.max_steps,
         "train_transitions": int(train_idx.size),
         "goal_conditioned": bool(goal_dims),

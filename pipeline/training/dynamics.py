@@ -4,7 +4,6 @@ the Gaussian negative log-likelihood of the train split's transitions, best vali
 
 from __future__ import annotations
 
-import logging
 import time
 from typing import Any
 
@@ -16,8 +15,7 @@ from pipeline.errors import UserError
 from pipeline.model.dynamics import DynamicsModel
 from pipeline.model.settings import dynamics_config
 from pipeline.segments import Segments
-
-log = logging.getLogger(__name__)
+from pipeline.training.keep_best import adam_keep_best
 
 
 def transition_index(segments: Segments, split: str) -> np.ndarray:
@@ -86,28 +84,22 @@ def fit_dynamics(
     model.set_normalization(normalization(segments, train_idx))
     model.to(device)
     train, val = _transitions(segments, train_idx, device), _transitions(segments, val_idx, device)
-    optimizer = torch.optim.Adam(model.net.parameters(), lr=cfg.lr)
     generator = torch.Generator().manual_seed(cfg.seed)
-    best: dict[str, Any] = {"val_nll": float("inf")}
-    state = None
     started = time.monotonic()
-    for step in range(1, cfg.max_steps + 1):
+
+    def next_loss() -> torch.Tensor:
         batch = torch.randint(train_idx.size, (cfg.batch_size,), generator=generator).to(device)
-        loss = model.nll(*(x[batch] for x in train)).mean()
-        if not torch.isfinite(loss):
-            raise UserError(f"dynamics training diverged at step {step}; lower dynamics.lr")
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
-        if step % cfg.eval_every == 0 or step == cfg.max_steps:
-            metrics = evaluate(model.eval(), *val)
-            model.train()
-            log.info("dynamics step %d: val NLL %.3f, RMSE %.2e", step, *metrics.values())
-            if state is None or metrics["nll"] < best["val_nll"]:
-                state = {k: v.detach().clone() for k, v in model.state_dict().items()}
-                best = {"val_nll": metrics["nll"], "val_rmse": metrics["rmse"], "best_step": step}
-    model.load_state_dict(state)
-    best |= {
+        return model.nll(*(x[batch] for x in train)).mean()
+
+    metrics, best_step = adam_keep_best(
+        model, model.net.parameters(), next_loss, lambda: evaluate(model, *val),
+        lr=cfg.lr, max_steps=cfg.max_steps, eval_every=cfg.eval_every, what="dynamics",
+        fix="lower dynamics.lr",
+    )  # fmt: skip
+    best: dict[str, Any] = {
+        "val_nll": metrics["nll"],
+        "val_rmse": metrics["rmse"],
+        "best_step": best_step,
         "steps": cfg.max_steps,
         "train_transitions": int(train_idx.size),
         "wall_s": time.monotonic() - started,
