@@ -255,7 +255,7 @@ RERUN_PENDING |= {
 RERUN_PENDING |= {
     path: "the small models' Adam loop shared (training/keep_best.py): the same updates"
     for path in ("pipeline/training/keep_best.py", "pipeline/training/bc.py",
-                 "pipeline/training/dynamics.py")
+                 "pipeline/training/dynamics.py", "pipeline/value/fit.py")
 }  # fmt: skip
 # Views and console text only: the scene's buttons coloured by state in the recordings, the
 # deploy summary's distances in success tolerances for object goals (reports unchanged).

@@ -19,11 +19,10 @@ import numpy as np
 import torch
 
 from pipeline.config import GCBCParams, PolicyParams
-from pipeline.errors import UserError
 from pipeline.model.policy import GaussianPolicy
 from pipeline.model.settings import policy_config
 from pipeline.segments import Segments
-from pipeline.training.dynamics import transition_index
+from pipeline.training.dynamics import split_transitions
 from pipeline.training.keep_best import adam_keep_best
 
 
@@ -87,13 +86,8 @@ def fit_policy(
     Raises:
         UserError: no train or validation steps, or the loss became NaN/inf.
     """
-    train_idx = transition_index(segments, "train")
-    val_idx = transition_index(segments, "validation")
-    if train_idx.size == 0 or val_idx.size == 0:
-        raise UserError("a policy needs train and validation episodes; see segment.split")
     rng = np.random.default_rng(cfg.seed)
-    if val_idx.size > cfg.val_transitions:
-        val_idx = np.sort(rng.choice(val_idx, cfg.val_transitions, replace=False))
+    train_idx, val_idx = split_transitions(segments, "a policy", cfg.val_transitions, rng)
     torch.manual_seed(cfg.seed)
     info, st = segments.info, segments.stats
     policy = GaussianPolicy(policy_config(cfg, info.state_dim, info.action_dim, goal_dims))

@@ -25,6 +25,24 @@ def transition_index(segments: Segments, split: str) -> np.ndarray:
     return np.concatenate(parts) if parts else np.zeros(0, np.int64)
 
 
+def split_transitions(
+    segments: Segments, what: str, val_transitions: int | None, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """The train and validation splits' transitions (`transition_index`), the validation ones a
+    fixed random subset of at most `val_transitions` (drawn from `rng`; None: all).
+
+    Raises:
+        UserError: a split without transitions (`what` names the model that needs them).
+    """
+    train_idx = transition_index(segments, "train")
+    val_idx = transition_index(segments, "validation")
+    if train_idx.size == 0 or val_idx.size == 0:
+        raise UserError(f"{what} needs train and validation episodes; see segment.split")
+    if val_transitions is not None and val_idx.size > val_transitions:
+        val_idx = np.sort(rng.choice(val_idx, val_transitions, replace=False))
+    return train_idx, val_idx
+
+
 def normalization(segments: Segments, train_idx: np.ndarray) -> dict[str, np.ndarray]:
     """Train statistics: the segments' state/action stats plus those of the change s_{t+1} - s_t."""
     delta = segments.states[train_idx + 1].astype(np.float64) - segments.states[train_idx]
@@ -71,13 +89,8 @@ def fit_dynamics(
     Raises:
         UserError: no train or validation transitions, or the loss became NaN/inf.
     """
-    train_idx = transition_index(segments, "train")
-    val_idx = transition_index(segments, "validation")
-    if train_idx.size == 0 or val_idx.size == 0:
-        raise UserError("the dynamics model needs train and validation episodes; see segment.split")
     rng = np.random.default_rng(cfg.seed)
-    if val_idx.size > cfg.val_transitions:
-        val_idx = np.sort(rng.choice(val_idx, cfg.val_transitions, replace=False))
+    train_idx, val_idx = split_transitions(segments, "the dynamics model", cfg.val_transitions, rng)
     torch.manual_seed(cfg.seed)
     info = segments.info
     model = DynamicsModel(dynamics_config(cfg, info.state_dim, info.action_dim))

@@ -31,7 +31,7 @@ from pipeline.config import ValueParams
 from pipeline.errors import UserError
 from pipeline.segments import Segments
 from pipeline.training.bc import episode_ends
-from pipeline.training.dynamics import transition_index
+from pipeline.training.dynamics import split_transitions
 from pipeline.value.network import GoalValue, ValueConfig
 
 log = logging.getLogger(__name__)
@@ -159,11 +159,8 @@ def fit_value(
     Raises:
         UserError: no train or validation transitions, or the loss became NaN/inf.
     """
-    train_idx = transition_index(segments, "train")
-    val_idx = transition_index(segments, "validation")
-    if train_idx.size == 0 or val_idx.size == 0:
-        raise UserError("a value needs train and validation episodes; see segment.split")
     rng = np.random.default_rng(cfg.seed)
+    train_idx, val_idx = split_transitions(segments, "a value", None, rng)
     torch.manual_seed(cfg.seed)
     config = ValueConfig(
         segments.info.state_dim, goal_dims, cfg.hidden, cfg.layers, cfg.heads, cfg.discount
