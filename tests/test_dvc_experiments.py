@@ -103,16 +103,14 @@ NOT_RUN_YET: dict[str, tuple[tuple[str, ...], str]] = {
     "experiments/manipulation/dvc.yaml": (
         tuple(f"{stage}@{d}" for stage in ("value", "deploy_value")
               for d in ("cube-single-play", "scene-play"))
-        + tuple(f"{stage}@puzzle-3x3-play" for stage in ("deploy_value", "dataset"))
         + tuple(f"{stage}@puzzle-4x4-play"
                 for stage in ("ingest", "segment", "train", "dynamics", "gcbc", "bc", "validate",
                               "deploy", "deploy_gcbc", "deploy_llp", "value", "deploy_value",
                               "oracle", "dataset"))
         + tuple(f"{stage}@cube-double-play-mix4"
                 for stage in ("train_variant", "validate_variant", "deploy_variant", "variant")),
-        "OPOSM with a learned value on the datasets whose data roots are rebuilt first, and on "
-        "puzzle-3x3-play (its value and the rest of its chain have run); the whole chain of "
-        "puzzle-4x4-play, not run; the mixture TAWM's variant on cube-double-play (running)",
+        "OPOSM with a learned value on the datasets whose data roots are rebuilt first; the "
+        "whole chain of puzzle-4x4-play, not run; the mixture TAWM's variant on cube-double-play (running)",
     ),
 }  # fmt: skip
 
