@@ -131,3 +131,29 @@ def test_a_mixture_needs_two_components():
 
     with pytest.raises(ValueError, match="at least 2 components"):
         MixtureGaussianMLP(4, 8, 4, components=1)
+
+
+def test_sampled_outcomes_draw_components_by_their_weights():
+    model = _model(2)
+    with torch.no_grad():  # weights 0.8 / 0.2 everywhere, the two means far apart
+        model.tawm.std[2].weight.zero_()
+        model.tawm.std[2].bias[-2:] = torch.tensor([math.log(0.8), math.log(0.2)])
+        model.tawm.mean[2].weight.zero_()
+        model.tawm.mean[2].bias.copy_(torch.tensor([5.0] * SD + [-5.0] * SD))
+    s0, z = torch.randn(4000, SD), torch.randn(4000, Z)
+    gen = torch.Generator().manual_seed(3)
+    mean, _ = model.tawm_outcome(s0, z, gen)
+    share = (mean[:, 0] > 0).float().mean().item()
+    assert abs(share - 0.8) < 0.03
+    torch.testing.assert_close(model.tawm_outcome(s0, z)[0], torch.full((4000, SD), 5.0))
+    # The particles of the open loop follow the drawn components: both modes appear.
+    chain = rollout_skills(model, s0[:200], z=z[:200, None], generator=gen)
+    assert (chain.states[:, 1, 0] > 0).any() and (chain.states[:, 1, 0] < 0).any()
+
+
+def test_a_single_gaussian_samples_without_an_extra_draw():
+    model = _model(1)
+    s0, z = torch.randn(8, SD), torch.randn(8, Z)
+    a, b = torch.Generator().manual_seed(5), torch.Generator().manual_seed(5)
+    model.tawm_outcome(s0, z, a)
+    assert torch.equal(torch.rand(3, generator=a), torch.rand(3, generator=b))

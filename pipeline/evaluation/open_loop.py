@@ -218,7 +218,8 @@ def tawm_predictive(
 
     p(s_k | s_0, z_1..k) = integral of prod p_psi(s_j | s_{j-1}, z_j): propagated with
     `particles` sampled chains per rollout; at each k the mixture of the particles' Gaussians is
-    summarized by its mean and per-dimension std (exact for k = 1, where every particle is s_0).
+    summarized by its mean and per-dimension std (exact for k = 1, where every particle is s_0,
+    with a single-Gaussian TAWM; of a mixture TAWM each particle draws its component).
 
     Args:
         s0: `[B, sd]`; z: `[B, L, z_dim]`.

@@ -5,8 +5,10 @@ From s_0, for k = 0..L-1:
 
     z_k = mu_omega(s_k) + sigma_omega(s_k) * eps_k      (whitened skills eps, `eps=`)
           or the given z_k                              (`z=`)
-    s_{k+1} ~ p_psi(s_T | s_k, z_k) = N(mu_psi, sigma_psi^2) (a mixture's most probable component):
-          its mean (the planner's prediction), or a sample (`generator=`, particles)
+    s_{k+1} ~ p_psi(s_T | s_k, z_k) = N(mu_psi, sigma_psi^2):
+          its mean (the planner's prediction), or a sample (`generator=`, particles);
+          of a mixture TAWM, the most probable component's mean, or a sample of a component
+          drawn by the mixture's weights
 
 Inside, everything stays in the train-normalized units the networks work in; raw states come in and
 go out at the boundary only. This is the planner's hot path: one prior and one TAWM pass per skill
@@ -55,8 +57,8 @@ def rollout_skills(
         s0: `[*B, sd]` raw start states (broadcast to the batch shape of `eps` / `z`).
         eps: `[*B, L, z_dim]` whitened skills: z_k from the prior at the chained state s_k.
         z: `[*B, L, z_dim]` the skills themselves (exactly one of `eps`, `z`).
-        generator: Sample each s_{k+1} from the TAWM (noise from this generator) instead of
-            taking its mean.
+        generator: Sample each s_{k+1} from the TAWM (noise from this generator; of a mixture,
+            from a component drawn by its weights) instead of taking its mean.
 
     Returns:
         The skills, chained states and the TAWM's Gaussians, in raw units.
@@ -77,7 +79,7 @@ def rollout_skills(
             skills.append(mu_z + sigma_z * given[:, k])
         else:
             skills.append(given[:, k])
-        mean, std = model.tawm_outcome(s, skills[-1])
+        mean, std = model.tawm_outcome(s, skills[-1], generator)
         if generator is None:
             s = mean
         else:

@@ -246,13 +246,24 @@ class SkillModel(nn.Module):
             validate_args=False,
         )
 
-    def tawm_outcome(self, s0_n: torch.Tensor, z: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    def tawm_outcome(
+        self, s0_n: torch.Tensor, z: torch.Tensor, generator: torch.Generator | None = None
+    ) -> tuple[torch.Tensor, ...]:
         """The TAWM's predicted s_T as a planner chains it: mean, std `[..., sd]` (normalized)
-        of its Gaussian, or of the mixture's most probable component."""
+        of its Gaussian, or of one component of the mixture: the most probable, or with
+        `generator` one drawn by the mixture's weights (a sampled outcome's component; one
+        uniform draw per row, none for a single Gaussian)."""
         x = torch.cat([s0_n, z], dim=-1)
         if self.config.tawm_components == 1:
             return self.tawm(x)
-        return self.tawm.readout(x)
+        if generator is None:
+            return self.tawm.readout(x)
+        means, stds, logits = self.tawm(x)
+        u = torch.rand(logits.shape[:-1], generator=generator, device=generator.device)
+        cdf = logits.softmax(-1).cumsum(-1)
+        index = (u.to(cdf.device)[..., None] > cdf).sum(-1).clamp(max=logits.shape[-1] - 1)
+        index = index[..., None, None].expand(*means.shape[:-2], 1, means.shape[-1])
+        return means.gather(-2, index).squeeze(-2), stds.gather(-2, index).squeeze(-2)
 
     # -- raw-unit interface (planning, validation, deployment) ----------------------------------
     @torch.no_grad()
