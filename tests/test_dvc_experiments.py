@@ -106,11 +106,9 @@ NOT_RUN_YET: dict[str, tuple[tuple[str, ...], str]] = {
         + tuple(f"{stage}@puzzle-4x4-play"
                 for stage in ("ingest", "segment", "train", "dynamics", "gcbc", "bc", "validate",
                               "deploy", "deploy_gcbc", "deploy_llp", "value", "deploy_value",
-                              "oracle", "dataset"))
-        + tuple(f"{stage}@cube-double-play-mix4"
-                for stage in ("train_variant", "validate_variant", "deploy_variant", "variant")),
+                              "oracle", "dataset")),
         "OPOSM with a learned value on the datasets whose data roots are rebuilt first; the "
-        "whole chain of puzzle-4x4-play, not run; the mixture TAWM's variant on cube-double-play (running)",
+        "whole chain of puzzle-4x4-play, not run",
     ),
 }  # fmt: skip
 
