@@ -36,9 +36,9 @@ class ReferencePlanner:
         best, best_cost = mean.clone(), float("inf")
         for _ in range(cem.iterations):
             eps = mean + std * torch.randn(
-                (cem.population, *shape), generator=generator, device=s0.device
+                (cem.candidates, *shape), generator=generator, device=s0.device
             )
-            s = s0.expand(cem.population, -1)
+            s = s0.expand(cem.candidates, -1)
             distances = []
             for i in range(cfg.horizon):
                 mu, sigma = m.skill_prior(s)

@@ -269,7 +269,7 @@ def _oposm_sim(
     config = planner_config(cfg.planner)
     steps = skill_horizon(meta, model_dir)
     rollout = SimulatedRollout(
-        model, spec, scale_mass(spec.model, cfg.mass_scale), config.cem.population, steps
+        model, spec, scale_mass(spec.model, cfg.mass_scale), config.cem.candidates, steps
     )
     agent = SimulatedSkillMPC(
         model, SimulatorPlanner(model, config, rollout), cfg.sample_actions, spec.goal_dims,

@@ -158,7 +158,7 @@ def test_llp_plans_actions_along_its_predicted_states(llp_models):
 def test_llp_params_are_the_paper_codes_and_checked():
     cfg = llp_config()  # from LLPParams()
     assert (cfg.horizon, cfg.execute, cfg.l2_penalty, cfg.plan_from) == (20, 5, 0.01, "mean")
-    assert (cfg.cem.population, cfg.cem.elites, cfg.cem.iterations) == (100, 20, 5)
+    assert (cfg.cem.candidates, cfg.cem.elites, cfg.cem.iterations) == (100, 20, 5)
     assert not cfg.warm_start
     with pytest.raises(ValueError, match="execute"):
         LLPParams(horizon=4, execute=5)

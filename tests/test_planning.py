@@ -37,7 +37,7 @@ def quadratic(centres: torch.Tensor, calls: list | None = None):
 
 
 def test_cem_finds_the_minimum_of_a_quadratic():
-    cem = CEM(CEMConfig(population=64, elites=8, iterations=40, min_std=0.0, stop_cost=None))
+    cem = CEM(CEMConfig(candidates=64, elites=8, iterations=40, min_std=0.0, stop_cost=None))
     mean = torch.zeros(2, 2, 3)
     result = cem.minimize(quadratic(CENTRES), mean, 2.0, problem_keys([0, 1], "cpu"))
     assert torch.allclose(result.best, CENTRES, atol=0.05)
@@ -51,7 +51,7 @@ def test_cem_finds_the_minimum_of_a_quadratic():
 def test_cem_problems_planned_together_equal_planned_apart():
     # Early stop: problem 0 starts at its optimum and stops after one iteration, problem 1 runs on.
     centres = CENTRES.clone()
-    cfg = CEMConfig(population=32, elites=6, iterations=15, min_std=0.0, stop_cost=0.05)
+    cfg = CEMConfig(candidates=32, elites=6, iterations=15, min_std=0.0, stop_cost=0.05)
     mean = torch.stack([centres[0], torch.zeros(2, 3)])
     std = torch.stack([torch.full((2, 3), 0.01), torch.ones(2, 3)])
     calls: list = []
@@ -79,7 +79,7 @@ def test_cem_ignores_nan_costs_and_rejects_bad_settings():
     )
     assert torch.isfinite(result.cost).all() and result.best[0, 0] <= 0
     with pytest.raises(UserError, match="elites"):
-        CEMConfig(population=10, elites=11, iterations=1, min_std=0.0, stop_cost=None)
+        CEMConfig(candidates=10, elites=11, iterations=1, min_std=0.0, stop_cost=None)
 
 
 def test_goal_cost_is_the_distance_of_the_nearest_predicted_state():

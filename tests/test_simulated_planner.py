@@ -38,7 +38,7 @@ def maze():
 
 def test_the_rollout_is_the_simulator_executing_the_skills(maze):
     spec, model, physics, _ = maze
-    rollout = SimulatedRollout(model, spec, spec.model, population=5, skill_steps=STEPS)
+    rollout = SimulatedRollout(model, spec, spec.model, candidates=5, skill_steps=STEPS)
     eps = torch.randn(3, 5, 2, 3, generator=torch.Generator().manual_seed(1))
     states, z = rollout(eps, physics)
     assert states.shape == (3, 5, 3, 4) and z.shape == (3, 5, 2, 3)

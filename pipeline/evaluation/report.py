@@ -60,8 +60,11 @@ def _task_line(task: str, t: dict[str, Any], radius: float, unit: str | None) ->
     return (
         f"    {task:12s} success {t['successes']}/{t['episodes']} = {_pct(t['success_rate'])} "
         f"[95 % CI {_pct(t['success_ci95_low'])} - {_pct(t['success_ci95_high'])}] "
-        + (f"within {radius:g} m{within}; {_pct(t['success_rate_r045'])} within 0.45 m; "
-           if unit is None else f"by the environment's success rule{within}; ")
+        + (
+            f"within {radius:g} m{within}; {_pct(t['success_rate_r045'])} within 0.45 m; "
+            if unit is None
+            else f"by the environment's success rule{within}; "
+        )
         + reached
         + (f"; {t['errors']} failed episodes" if t["errors"] else "")
         + (f"; fell in {t['fallen']}" if t.get("fallen") else "")

@@ -38,28 +38,29 @@ class CEMConfig:
     (`pipeline.config`) hold them, and `pipeline.planning.settings` builds this from them.
 
     Attributes:
-        population: Candidates sampled per problem and iteration [K].
+        candidates: Candidates sampled per problem and iteration [K] (`deploy.planner.candidates`,
+            `deploy.llp.candidates`).
         elites: Cheapest candidates the Gaussian is refit to [N_keep].
         iterations: Maximum iterations [N_iters].
         min_std: Floor on the refit std, so the search never collapses to a point.
         stop_cost: Stop a problem once its best cost is below this; None: run all iterations.
     """
 
-    population: int
+    candidates: int
     elites: int
     iterations: int
     min_std: float
     stop_cost: float | None
 
     def __post_init__(self) -> None:
-        if self.population < 1 or self.iterations < 1:
+        if self.candidates < 1 or self.iterations < 1:
             raise UserError(
-                f"CEM needs population >= 1 and iterations >= 1, got {self.population}, "
+                f"CEM needs candidates >= 1 and iterations >= 1, got {self.candidates}, "
                 f"{self.iterations}"
             )
-        if not 1 <= self.elites <= self.population:
+        if not 1 <= self.elites <= self.candidates:
             raise UserError(
-                f"CEM elites must be in [1, population={self.population}], got {self.elites}"
+                f"CEM elites must be in [1, candidates={self.candidates}], got {self.elites}"
             )
         if self.min_std < 0:
             raise UserError(f"CEM min_std must be >= 0, got {self.min_std}")
@@ -136,7 +137,7 @@ class CEM:
         cfg = self.config
         b, shape = state.mean.shape[0], state.mean.shape[1:]
         # Sample: each problem from its own stream.
-        noise = normal(keys, (cfg.population, *shape))
+        noise = normal(keys, (cfg.candidates, *shape))
         x = state.mean[:, None] + state.std[:, None] * noise  # [B, K, *shape]
         cost, extras = cost_fn(x)
         cost = torch.nan_to_num(cost, nan=float("inf"))  # [B, K]

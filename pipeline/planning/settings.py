@@ -16,7 +16,13 @@ from pipeline.planning.skills import PlannerConfig
 
 def cem_config(p: PlannerParams | LLPParams) -> CEMConfig:
     """The CEM settings of `deploy.planner` or `deploy.llp`."""
-    return CEMConfig(p.candidates, p.elites, p.iterations, p.min_std, p.stop_cost)
+    return CEMConfig(
+        candidates=p.candidates,
+        elites=p.elites,
+        iterations=p.iterations,
+        min_std=p.min_std,
+        stop_cost=p.stop_cost,
+    )
 
 
 def planner_config(p: PlannerParams) -> PlannerConfig:

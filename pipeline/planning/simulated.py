@@ -2,7 +2,7 @@
 
 The same CEM over the same whitened skills as OPOSM's planner (`SkillPlanner`), but every
 candidate is scored by executing it: the environment's exact physics state is copied into
-`population` scratch simulators, skill k is `z_k = mu_omega(s_k) + sigma_omega(s_k) eps_k` at the
+`candidates` scratch simulators, skill k is `z_k = mu_omega(s_k) + sigma_omega(s_k) eps_k` at the
 state the simulator really reached, the low-level policy pi_theta(a | s, z_k) runs it for the
 skill's T steps (its mean action, closed loop on the simulated state), and the goal cost reads the
 simulated states at the skills' ends instead of the TAWM's chained means.
@@ -11,7 +11,7 @@ What it measures: an agent that plans this way fails only where the skills or th
 the task (or CEM does not find the plan); where it succeeds and OPOSM does not, the TAWM's
 predictions are what stops OPOSM. It is an upper bound, not an agent: each candidate costs
 `horizon x T` simulator steps (at ~700 manipulation steps/s per core, a replan of 32 candidates,
-3 skills of 20 steps and 3 iterations takes ~8 s), so it runs with a small population
+3 skills of 20 steps and 3 iterations takes ~8 s), so it runs with few candidates
 (`deploy.planner.*` overrides; docs/manipulation.md). Random pushes of the deploy environment are
 not simulated (the scratch simulators have none).
 """
@@ -32,7 +32,7 @@ from pipeline.planning.skills import Plan, PlannerConfig, SkillPlanner
 
 
 class SimulatedRollout:
-    """Executes whitened skill sequences from exact physics states in `population` scratch
+    """Executes whitened skill sequences from exact physics states in `candidates` scratch
     simulators of `spec`'s environment running `mj_model` (the deploy environment's, with its
     `deploy.mass_scale`), `skill_steps` steps per skill."""
 
@@ -41,12 +41,12 @@ class SimulatedRollout:
         model: SkillModel,
         spec: EnvSpec,
         mj_model: mujoco.MjModel,
-        population: int,
+        candidates: int,
         skill_steps: int,
     ):
         self.model = model
-        self.sim = BatchSim(spec, population, [mj_model] * population)
-        self.sim.seed_slots(range(population))  # teleports draw from it (the OGBench mazes)
+        self.sim = BatchSim(spec, candidates, [mj_model] * candidates)
+        self.sim.seed_slots(range(candidates))  # teleports draw from it (the OGBench mazes)
         self.skill_steps = skill_steps
 
     @torch.no_grad()
@@ -90,7 +90,7 @@ class SimulatorPlanner(SkillPlanner):
                 "the oposm_sim agent plans in the simulator: set deploy.planner.compile=false "
                 "and deploy.planner.kernel=torch"
             )
-        if config.cem.population != len(rollout.sim):
+        if config.cem.candidates != len(rollout.sim):
             raise ValueError("one scratch simulator per CEM candidate")
         super().__init__(model, config)
         self.rollout = rollout
