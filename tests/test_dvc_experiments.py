@@ -145,8 +145,30 @@ def _stale(pipeline: str) -> list[str]:
                 if not isinstance(entry, ParamsDependency) and not entry.exists:
                     problems.append(f"{stage.name}: {entry.def_path} is missing")
                 elif status := entry.status():
-                    problems.append(f"{stage.name}: {dict(status)}")
+                    new = _new_param(entry) if isinstance(entry, ParamsDependency) else None
+                    problems.append(f"{stage.name}: " + (f"{{'{new}': 'new'}}" if new else
+                                                         f"{dict(status)}"))  # fmt: skip
     return problems
+
+
+def _new_param(entry) -> str | None:
+    """`section.key` where a params dependency's only change since its lock is one key added to
+    a section (the rest equal), or None: a new param at its default, which RERUN_PENDING may
+    name like a code file."""
+    recorded, current = entry.hash_info.value, entry.read_params()
+    if recorded.keys() != current.keys():
+        return None
+    added = []
+    for section, now in current.items():
+        before = recorded[section]
+        if now == before:
+            continue
+        if not (isinstance(now, dict) and isinstance(before, dict)):
+            return None
+        if before.keys() - now.keys() or any(now[k] != v for k, v in before.items()):
+            return None
+        added += [f"{section}.{k}" for k in now.keys() - before.keys()]
+    return added[0] if len(added) == 1 else None
 
 
 # every experiments pipeline: its committed lock ran with today's params and code (NOT_RUN_YET's
@@ -239,6 +261,10 @@ RERUN_PENDING |= {
     "pipeline/evaluation/tasks.py": "docstrings (the puzzles' tasks); unchanged outputs",
 }
 
+# A new param at its default: the locks ran with what it now spells out (1: the paper's Gaussian).
+RERUN_PENDING["train.tawm_components"] = (
+    "a new key of `train` at its default (1, the paper's single Gaussian): the same runs"
+)
 # The mixture TAWM (`train.tawm_components`, default 1: the paper's Gaussian) joins the model,
 # the rollout, the planner's networks and the validation metrics; with one component every
 # computation is the one before (tests/test_tawm_mixture.py, tests/test_planning.py).
