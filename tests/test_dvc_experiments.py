@@ -104,9 +104,12 @@ NOT_RUN_YET: dict[str, tuple[tuple[str, ...], str]] = {
         tuple(f"{stage}@{d}" for stage in ("value", "deploy_value")
               for d in ("cube-single-play", "scene-play"))
         + tuple(f"{stage}@puzzle-4x4-play"
-                for stage in ("deploy", "deploy_llp", "value", "deploy_value", "dataset")),
+                for stage in ("deploy", "deploy_llp", "value", "deploy_value", "dataset"))
+        + tuple(f"{stage}@cube-double-play-w41" for stage in (
+            "segment_variant", "train_variant", "validate_variant", "deploy_variant", "variant")),
         "OPOSM with a learned value on the datasets whose data roots are rebuilt first; "
-        "puzzle-4x4-play past its data, models, oracle and GCBC (LLP, the value, the page)",
+        "puzzle-4x4-play past its data, models, oracle and GCBC (LLP, the value, the page); "
+        "cube-double-play's variant with 40-step skills",
     ),
 }  # fmt: skip
 
