@@ -643,6 +643,12 @@ class DeployParams(_Section):
     )
     planner: PlannerParams = Field(default_factory=PlannerParams)
     subgoals: SubgoalParams = Field(default_factory=SubgoalParams)
+    object_subtasks: bool = Field(
+        False,
+        description="OPOSM on an object goal (manipulation): plan to one object at a time, the "
+        "first in the goal's order not yet within its tolerance, the objects to come left where "
+        "they are (`pipeline/planning/subtasks.py`); false: to the whole goal (the paper).",
+    )
     llp: LLPParams = Field(default_factory=LLPParams)
     gcbc: GCBCAgentParams = Field(default_factory=GCBCAgentParams)
     expert: ExpertAgentParams = Field(default_factory=ExpertAgentParams)

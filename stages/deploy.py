@@ -65,6 +65,7 @@ from pipeline.planning.settings import llp_config, planner_config
 from pipeline.planning.simulated import SimulatedRollout, SimulatedSkillMPC, SimulatorPlanner
 from pipeline.planning.skills import SkillPlanner
 from pipeline.planning.subgoals import SubgoalGraph
+from pipeline.planning.subtasks import ObjectSubtasks
 from pipeline.segments import Segments, load_segments
 from pipeline.value.network import load_value
 from pipeline.viz.deploy import recording_name, write_episode_recording
@@ -134,6 +135,15 @@ def _oposm(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, devi
         log.info("subgoal graph: %d nodes (cells of %g m), reach %d skills%s",
                  len(subgoals.nodes), sub.cell, sub.reach,
                  ", line of sight" if sub.line_of_sight else "")  # fmt: skip
+    subtasks = None
+    if cfg.object_subtasks:
+        if not isinstance(spec, ManipSpaceSpec):
+            raise UserError(
+                f"deploy.object_subtasks plans an OGBench manipulation goal one object at a "
+                f"time; {spec.env_id} has no such goal: set deploy.object_subtasks=false"
+            )
+        subtasks = ObjectSubtasks(spec.goal_objects, spec.goal_scale)
+        log.info("one object at a time: %d objects in the goal", len(subtasks.objects))
     skill_steps = skill_horizon(meta, model_dir)
     value, value_info = _value(params, paths, segments, spec, device, skill_steps)
     return AgentSetup(
@@ -146,10 +156,12 @@ def _oposm(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, devi
             getattr(spec, "fallen", None),
             getattr(spec, "goal_scale", None),
             value,
+            subtasks,
         ),  # fmt: skip
         cfg.replan_every or skill_horizon(meta, model_dir),
         {"model": str(model_dir), "model_step": meta.get("step"), **cfg.planner.model_dump()}
         | ({f"subgoals_{k}": v for k, v in cfg.subgoals.model_dump().items()} if subgoals else {})
+        | ({"object_subtasks": True} if subtasks else {})
         | value_info,
         plan_state_steps=skill_horizon(meta, model_dir),  # a skill
     )

@@ -293,6 +293,8 @@ def test_bad_deploy_inputs_are_one_line_errors(project, tmp_path):
     assert "deploy.agents" in line and "'oposm', 'oposm_sim', 'llp', 'gcbc' or 'expert'" in line
     args = ["deploy", *common, "-S", "deploy.device=cpu", "-S", "deploy.planner.kernel=triton"]
     assert "deploy.planner.kernel=torch" in _one_line_error(runner.invoke(app, args))
+    args = ["deploy", *common, "-S", "deploy.object_subtasks=true"]
+    assert "deploy.object_subtasks=false" in _one_line_error(runner.invoke(app, args))
     # A checkpoint whose states are not the maze's [x, y, vx, vy].
     model, meta = load_model(root / "data/models/tiny")
     wrong = SkillModel(skill_model_config(6, 2, z_dim=4, hidden=32))

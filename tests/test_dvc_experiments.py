@@ -266,6 +266,9 @@ RERUN_PENDING |= {
 RERUN_PENDING["train.tawm_components"] = (
     "a new key of `train` at its default (1, the paper's single Gaussian): the same runs"
 )
+RERUN_PENDING["deploy.object_subtasks"] = (
+    "a new key of `deploy` at its default (false, the paper's whole-goal plans): the same runs"
+)
 # The mixture TAWM (`train.tawm_components`, default 1: the paper's Gaussian) joins the model,
 # the rollout, the planner's networks and the validation metrics; with one component every
 # computation is the one before (tests/test_tawm_mixture.py, tests/test_planning.py).
@@ -287,6 +290,11 @@ RERUN_PENDING |= {
     for path in ("pipeline/evaluation/report.py", "pipeline/viz/manip.py",
                  "pipeline/viz/manip_scene.py")
 }  # fmt: skip
+
+# One object of a manipulation goal at a time (`deploy.object_subtasks`, false by default: the
+# whole goal, the same plans; tests/test_subtasks.py, tests/test_manip_pipeline.py).
+for _path in ("pipeline/planning", "stages/deploy.py", "pipeline/envs/manipspace.py"):
+    RERUN_PENDING[_path] += "; deploy.object_subtasks (false by default: the same plans)"
 
 
 def _covered(problem: str) -> str | None:

@@ -413,3 +413,28 @@ def test_oposm_plans_with_a_learned_value_once_oposm_value_has_run(tiny_run):
     assert settings["value_weight"] == 0.5 and settings["value_skill_steps"] == 5
     rows = json.loads((run.root / "reports/deploy/episodes.json").read_text())
     assert len(rows) == 5 and all(r["error"] is None and r["replans"] == 2 for r in rows)
+
+
+@pytest.mark.slow
+def test_oposm_plans_one_object_at_a_time_and_the_report_says_so(tiny_run):
+    """`deploy.object_subtasks`: the same episodes run through, the settings name it, and with
+    a single cube (one object) every plan is the one to the whole goal: the same episodes."""
+    from stages import deploy
+
+    params, paths, _, _ = tiny_run
+    one = load_params(ROOT / "params.yaml", [*TINY, "deploy.agents=[oposm]"])
+    split = load_params(
+        ROOT / "params.yaml", [*TINY, "deploy.agents=[oposm]", "deploy.object_subtasks=true"]
+    )
+    whole = deploy.run(one, Paths.for_run(paths.root, "whole"), progress=False)
+    report = deploy.run(split, Paths.for_run(paths.root, "objects"), progress=False)
+    assert report["by_agent"]["oposm"]["settings"]["object_subtasks"] is True
+    assert "object_subtasks" not in whole["by_agent"]["oposm"]["settings"]
+    rows = {
+        run: json.loads((paths.root / f"runs/{run}/reports/deploy/episodes.json").read_text())
+        for run in ("whole", "objects")
+    }
+    assert len(rows["objects"]) == 5 and all(r["error"] is None for r in rows["objects"])
+    assert [r["final_distance"] for r in rows["objects"]] == [
+        r["final_distance"] for r in rows["whole"]
+    ]

@@ -682,6 +682,15 @@ class ManipSpaceSpec:
             scale += [SUCCESS_TOLERANCE * DRAWER_SCALE, SUCCESS_TOLERANCE * WINDOW_SCALE]
         return tuple(scale)
 
+    @property
+    def goal_objects(self) -> tuple[tuple[int, ...], ...]:
+        """The goal vector's indices of each object, in its order (`goal_vector`): each cube's
+        position (3), each button's state, the scene's drawer, its window (1 each); what
+        `deploy.object_subtasks` plans to one at a time, with the tolerances of `goal_scale`."""
+        cubes = [(3 * i, 3 * i + 1, 3 * i + 2) for i in range(self.n_cubes)]
+        singles = range(3 * self.n_cubes, len(self.goal_dims))
+        return (*cubes, *((i,) for i in singles))
+
     def goal_reached(self, observations: np.ndarray, goals: np.ndarray) -> np.ndarray:
         """`[...]` bool: `success` judged from observations `[..., state_dim]` and goal vectors
         `[..., G]` (`goal_vector`) instead of states, for planners and batched evaluation. The

@@ -20,6 +20,7 @@ from pipeline.planning.costs import GoalCost, ValueGoalCost
 from pipeline.planning.noise import normal, problem_keys, substream
 from pipeline.planning.skills import Plan, SkillPlanner, shift_plan
 from pipeline.planning.subgoals import SubgoalGraph
+from pipeline.planning.subtasks import ObjectSubtasks
 
 # `(states [..., sd], goals [..., G]) -> [...]` steps to the goal (a learned value's).
 StepsToGo = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
@@ -42,6 +43,8 @@ class SkillMPC:
             spec's `goal_scale`: OGBench manipulation's success tolerances); None: raw units.
         value: A learned steps-to-go `(states, goals) -> steps`, its weight and the skill length
             T, for `ValueGoalCost` (`value.weight`); None: the paper's `GoalCost`.
+        subtasks: Plan to one object of the goal at a time (`deploy.object_subtasks`); None:
+            to the whole goal (the paper).
     """
 
     name = "oposm"
@@ -56,8 +59,12 @@ class SkillMPC:
         fallen: Callable[[torch.Tensor], torch.Tensor] | None = None,
         goal_scale: Sequence[float] | None = None,
         value: tuple[StepsToGo, float, int] | None = None,
+        subtasks: ObjectSubtasks | None = None,
     ):
+        if subgoals is not None and subtasks is not None:
+            raise ValueError("plan to waypoints (subgoals) or to one object at a time, not both")
         self.model = model
+        self.subtasks = subtasks
         self.value = value
         self.goal_scale = goal_scale
         self.fallen = fallen
@@ -103,6 +110,9 @@ class SkillMPC:
             dims = list(self.goal_dims or range(targets.shape[-1]))
             targets = self.subgoals.waypoints(s0[:, dims], targets)
             self.targets = targets
+        if self.subtasks is not None:
+            dims = list(self.goal_dims or range(targets.shape[-1]))
+            targets = self.subtasks.targets(s0[:, dims], targets)
         if self.value is None:
             cost = GoalCost(
                 targets, self.goal_dims, cfg.skill_penalty, cfg.fall_penalty, self.fallen,
