@@ -53,7 +53,7 @@ def bench_train(
         torch.manual_seed(cfg.seed)
         model = SkillModel(model_config(cfg, segments)).to(device)
         updater = updater_for(cfg, model)
-        sampler = WindowSampler(segments, "train", device, cfg.seed)
+        sampler = WindowSampler(segments, "train", device, cfg.seed, chain=cfg.tawm_chain)
         with FlopCounterMode(display=False) as counter:  # eager: a graph replay is not seen
             updater.step(sampler.sample(cfg.batch_size))
         if cfg.cuda_graph and device.type == "cuda":

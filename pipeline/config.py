@@ -225,6 +225,14 @@ class TrainParams(_Section):
         "that holds or slips: one Gaussian's mean lies between them). The planner chains the "
         "most probable component's mean.",
     )
+    tawm_chain: int = Field(
+        1,
+        ge=1,
+        description="Skills the TAWM is trained to chain: 1 is the paper's (p(s_T | s_0, z) of "
+        "one window). K > 1: windows of K consecutive skills, the M-step's TAWM term averaged "
+        "over the K outcomes, each predicted from the TAWM's own previous prediction (the "
+        "planner's chain), so it learns from its own errors (`pipeline/training/losses.py`).",
+    )
     min_std: float = Field(1e-4, gt=0, description="Floor added to every predicted std.")
     batch_size: int = Field(100, ge=1, description="Windows per update step (paper: 100).")
     action_likelihood: Literal["gaussian", "censored"] = Field(
@@ -305,6 +313,15 @@ class TrainParams(_Section):
         if isinstance(v, int) and v < 1:
             raise ValueError("must be >= 1, auto or null")
         return v
+
+    @model_validator(mode="after")
+    def _chain_is_em(self) -> TrainParams:
+        if self.tawm_chain > 1 and self.method != "em":
+            raise ValueError(
+                f"tawm_chain ({self.tawm_chain}) chains the TAWM in EM's M-step; with method "
+                f"{self.method} set tawm_chain to 1"
+            )
+        return self
 
     device: Literal["auto", "cpu", "cuda"] = Field(
         "auto", description="auto: CUDA when available, else CPU."

@@ -77,12 +77,18 @@ def model_config(cfg: TrainParams, segments: Segments) -> SkillModelConfig:
     return skill_model_config(cfg, segments.info.state_dim, segments.info.action_dim, **bounds)
 
 
+def _unchanged_at_default(cfg: TrainParams) -> set[str]:
+    """Keys added since states were first saved, left out at the value every earlier run had
+    (the same computation), so those states still resume."""
+    return {"tawm_chain"} if cfg.tawm_chain == 1 else set()
+
+
 def _fingerprint(cfg: TrainParams, segments_dir: Path, world_size: int) -> str:
     """What a resumable state must match: training params (less budget), data, process count,
     and the CPU arithmetic (a state made in another MKL mode would not end bit-identical)."""
     what = {
         "state_format": 2,  # 2: a best checkpoint per selection criterion (best/<criterion>/)
-        "train": cfg.model_dump(exclude=_BUDGET_KEYS),
+        "train": cfg.model_dump(exclude=_BUDGET_KEYS | _unchanged_at_default(cfg)),
         "segments": json.loads((segments_dir / "segments.json").read_text()),
         "processes": world_size,
         "cpu_math": cpu_math.mode(),
@@ -166,7 +172,9 @@ def _train(
         updater = CudaGraphUpdater(updater)
     elif cfg.cuda_graph:
         log.info("train.cuda_graph: no CUDA device, eager steps")
-    train = WindowSampler(segments, "train", accelerator.device, seed=cfg.seed + 1000 * rank)
+    train = WindowSampler(
+        segments, "train", accelerator.device, seed=cfg.seed + 1000 * rank, chain=cfg.tawm_chain
+    )
     val = WindowSampler(segments, "validation", accelerator.device, seed=cfg.seed)
     val_idx = val.fixed_subset(cfg.val_windows, seed=cfg.seed)
 

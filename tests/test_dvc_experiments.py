@@ -106,10 +106,12 @@ NOT_RUN_YET: dict[str, tuple[tuple[str, ...], str]] = {
         + tuple(f"{stage}@puzzle-4x4-play"
                 for stage in ("deploy", "deploy_llp", "value", "deploy_value", "dataset"))
         + tuple(f"{stage}@cube-double-play-w41" for stage in (
-            "segment_variant", "train_variant", "validate_variant", "deploy_variant", "variant")),
+            "segment_variant", "train_variant", "validate_variant", "deploy_variant", "variant"))
+        + tuple(f"{stage}@cube-double-play-chain3" for stage in (
+            "train_variant", "validate_variant", "deploy_variant", "variant")),
         "OPOSM with a learned value on the datasets whose data roots are rebuilt first; "
         "puzzle-4x4-play past its data, models, oracle and GCBC (LLP, the value, the page); "
-        "cube-double-play's variant with 40-step skills",
+        "cube-double-play's variants with 40-step skills and a TAWM trained to chain 3 skills",
     ),
 }  # fmt: skip
 

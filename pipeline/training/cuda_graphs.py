@@ -80,8 +80,8 @@ class CudaGraphUpdater:
         if self._captured is None:
             self._capture(batch)
         assert self._batch is not None and self._captured is not None
-        self._batch.states.copy_(batch.states)
-        self._batch.actions.copy_(batch.actions)
+        for mine, theirs in zip(_tensors(self._batch), _tensors(batch), strict=True):
+            mine.copy_(theirs)
         metrics: dict[str, torch.Tensor] = {}
         for half in self._captured:
             half.grads.replay()
@@ -96,7 +96,7 @@ class CudaGraphUpdater:
         return metrics
 
     def _capture(self, batch: WindowBatch) -> None:
-        self._batch = WindowBatch(batch.states.clone(), batch.actions.clone())
+        self._batch = WindowBatch(*(None if t is None else t.clone() for t in _fields(batch)))
         halves = self.inner.halves
         for half in halves:
             _make_capturable(half.optimizer)
@@ -148,3 +148,13 @@ def _make_capturable(optimizer: torch.optim.Optimizer) -> None:
             state = optimizer.state.get(p)
             if state and "step" in state:
                 state["step"] = state["step"].to(p.device, torch.float32)
+
+
+def _fields(batch: WindowBatch) -> tuple[torch.Tensor | None, ...]:
+    """The batch's tensors in `WindowBatch`'s field order (None where it has no windows after)."""
+    return (batch.states, batch.actions, batch.after_states, batch.after_actions)
+
+
+def _tensors(batch: WindowBatch) -> list[torch.Tensor]:
+    """The batch's tensors that are there."""
+    return [t for t in _fields(batch) if t is not None]

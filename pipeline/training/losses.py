@@ -95,7 +95,13 @@ def m_step_loss(
 
     z is sampled without gradient: the M-step updates theta, psi and omega only, and none of
     their gradients flows through z.
+
+    With the windows that follow (`batch.after_states`, `train.tawm_chain` K > 1) the TAWM
+    term is `chained_tawm_log_prob`'s, averaged over the K skills; the policy and prior terms
+    stay the first window's. One window: eq. 16 exactly.
     """
+    if batch.after_states is not None:
+        return _chained_m_step_loss(model, batch)
     with torch.no_grad():
         z = model.posterior_dist(batch.states[:, :-1], batch.actions).rsample()
     loss, terms = m_objective(model, batch, z)
@@ -104,6 +110,48 @@ def m_step_loss(
         "action_nll": -terms["log_pi"].detach().mean(),
         "st_nll": -terms["log_tawm"].detach().mean(),
         "prior_nll": -terms["log_prior"].detach().mean(),
+    }
+
+
+def chained_tawm_log_prob(
+    model: SkillModel, s0_n: torch.Tensor, z: torch.Tensor, outcomes: torch.Tensor
+) -> torch.Tensor:
+    """`[B, K]`: log p_psi(s_kT | s^_(k-1)T, z_k) of K skills chained as a planner chains them:
+    s^_0 = s_0, then each next start is the TAWM's own prediction (`tawm_outcome`, its mean),
+    with gradient through the chain, so the TAWM learns from the errors it feeds itself.
+    `s0_n [B, sd]`, `z [B, K, z]`, `outcomes [B, K, sd]` the real s_T, s_2T, ... (normalized).
+    """
+    start, logs = s0_n, []
+    for k in range(z.shape[1]):
+        logs.append(model.tawm_dist(start, z[:, k]).log_prob(outcomes[:, k]))
+        start = model.tawm_outcome(start, z[:, k])[0]
+    return torch.stack(logs, dim=1)
+
+
+def _chained_m_step_loss(
+    model: SkillModel, batch: WindowBatch
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """`m_step_loss` over a window and the K - 1 that follow it."""
+    assert batch.after_actions is not None
+    states = torch.cat([batch.states, batch.after_states], dim=1)  # [B, KT + 1, sd]
+    actions = torch.cat([batch.actions, batch.after_actions], dim=1)  # [B, KT, ad]
+    b, t = batch.actions.shape[:2]
+    k = actions.shape[1] // t
+    with torch.no_grad():  # every window's skill, in one pass of the posterior
+        windows = states[:, : k * t].reshape(b * k, t, -1)
+        z = model.posterior_dist(windows, actions.reshape(b * k, t, -1)).rsample()
+        z = z.reshape(b, k, -1)
+    s0 = batch.states[:, 0]
+    log_pi = policy_log_prob(model, batch, z[:, 0])
+    log_prior = model.prior_dist(s0).log_prob(z[:, 0])
+    log_tawm = chained_tawm_log_prob(model, s0, z, states[:, t::t])  # [B, K]
+    loss = -(log_pi + log_tawm.mean(dim=1) + log_prior).mean()
+    return loss, {
+        "m_loss": loss.detach(),
+        "action_nll": -log_pi.detach().mean(),
+        "st_nll": -log_tawm[:, 0].detach().mean(),
+        "st_nll_chained": -log_tawm[:, 1:].detach().mean(),
+        "prior_nll": -log_prior.detach().mean(),
     }
 
 
