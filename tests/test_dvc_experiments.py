@@ -148,30 +148,31 @@ def _stale(pipeline: str) -> list[str]:
                 if not isinstance(entry, ParamsDependency) and not entry.exists:
                     problems.append(f"{stage.name}: {entry.def_path} is missing")
                 elif status := entry.status():
-                    new = _new_param(entry) if isinstance(entry, ParamsDependency) else None
-                    problems.append(f"{stage.name}: " + (f"{{'{new}': 'new'}}" if new else
-                                                         f"{dict(status)}"))  # fmt: skip
+                    new = _new_params(entry) if isinstance(entry, ParamsDependency) else []
+                    problems += [f"{stage.name}: {{'{key}': 'new'}}" for key in new] or [
+                        f"{stage.name}: {dict(status)}"
+                    ]
     return problems
 
 
-def _new_param(entry) -> str | None:
-    """`section.key` where a params dependency's only change since its lock is one key added to
-    a section (the rest equal), or None: a new param at its default, which RERUN_PENDING may
-    name like a code file."""
+def _new_params(entry) -> list[str]:
+    """`section.key` of each key added to a section of a params dependency since its lock,
+    where that is its only change (the rest equal), else []: new params at their defaults,
+    which RERUN_PENDING may name like code files."""
     recorded, current = entry.hash_info.value, entry.read_params()
     if recorded.keys() != current.keys():
-        return None
+        return []
     added = []
     for section, now in current.items():
         before = recorded[section]
         if now == before:
             continue
         if not (isinstance(now, dict) and isinstance(before, dict)):
-            return None
+            return []
         if before.keys() - now.keys() or any(now[k] != v for k, v in before.items()):
-            return None
-        added += [f"{section}.{k}" for k in now.keys() - before.keys()]
-    return added[0] if len(added) == 1 else None
+            return []
+        added += [f"{section}.{k}" for k in sorted(now.keys() - before.keys())]
+    return added
 
 
 # every experiments pipeline: its committed lock ran with today's params and code (NOT_RUN_YET's
@@ -268,6 +269,14 @@ RERUN_PENDING |= {
 RERUN_PENDING["train.tawm_components"] = (
     "a new key of `train` at its default (1, the paper's single Gaussian): the same runs"
 )
+RERUN_PENDING["train.tawm_chain"] = (
+    "a new key of `train` at its default (1, the paper's one-window TAWM): the same runs"
+)
+RERUN_PENDING |= {
+    path: "windows followed by more for a chained TAWM (train.tawm_chain, 1 by default: the same "
+    "batches and updates)"
+    for path in ("pipeline/training/data.py", "pipeline/training/cuda_graphs.py")
+}  # fmt: skip
 RERUN_PENDING["deploy.object_subtasks"] = (
     "a new key of `deploy` at its default (false, the paper's whole-goal plans): the same runs"
 )
@@ -297,6 +306,10 @@ RERUN_PENDING |= {
 # whole goal, the same plans; tests/test_subtasks.py, tests/test_manip_pipeline.py).
 for _path in ("pipeline/planning", "stages/deploy.py", "pipeline/envs/manipspace.py"):
     RERUN_PENDING[_path] += "; deploy.object_subtasks (false by default: the same plans)"
+# A TAWM trained to chain skills (`train.tawm_chain`, 1 by default: eq. 16 and the same resume
+# keys; tests/test_tawm_chain.py).
+for _path in ("pipeline/training/losses.py", "stages/train.py"):
+    RERUN_PENDING[_path] += "; train.tawm_chain (1 by default: the same updates)"
 
 
 def _covered(problem: str) -> str | None:
