@@ -105,13 +105,11 @@ NOT_RUN_YET: dict[str, tuple[tuple[str, ...], str]] = {
               for d in ("cube-single-play", "scene-play"))
         + tuple(f"{stage}@puzzle-4x4-play"
                 for stage in ("deploy", "deploy_value", "dataset"))
-        + tuple(f"{stage}@cube-double-play-w41" for stage in (
-            "segment_variant", "train_variant", "validate_variant", "deploy_variant", "variant"))
         + tuple(f"{stage}@cube-double-play-chain3" for stage in (
             "train_variant", "validate_variant", "deploy_variant", "variant")),
         "OPOSM with a learned value on the datasets whose data roots are rebuilt first; "
         "puzzle-4x4-play past its data, models, value, oracle, GCBC and LLP (the page); "
-        "cube-double-play's variants with 40-step skills and a TAWM trained to chain 3 skills",
+        "cube-double-play's variant with a TAWM trained to chain 3 skills",
     ),
 }  # fmt: skip
 
