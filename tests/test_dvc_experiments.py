@@ -104,12 +104,9 @@ NOT_RUN_YET: dict[str, tuple[tuple[str, ...], str]] = {
         tuple(f"{stage}@{d}" for stage in ("value", "deploy_value")
               for d in ("cube-single-play", "scene-play"))
         + tuple(f"{stage}@puzzle-4x4-play"
-                for stage in ("deploy", "deploy_value", "dataset"))
-        + tuple(f"{stage}@cube-double-play-chain3" for stage in (
-            "train_variant", "validate_variant", "deploy_variant", "variant")),
+                for stage in ("deploy", "deploy_value", "dataset")),
         "OPOSM with a learned value on the datasets whose data roots are rebuilt first; "
-        "puzzle-4x4-play past its data, models, value, oracle, GCBC and LLP (the page); "
-        "cube-double-play's variant with a TAWM trained to chain 3 skills",
+        "puzzle-4x4-play past its data, models, value, oracle, GCBC and LLP (the page)",
     ),
 }  # fmt: skip
 
