@@ -3,8 +3,8 @@ one-object goals.
 
 The planner's cost is the distance to the whole goal. With two cubes to move, the candidate
 plans that move the first cube and those that move the second lower it alike, and CEM's elites,
-drawn from both, average to a plan that moves neither (cube-double-play's two-cube tasks: no cube
-ever carried, results/manipulation.md). Here each replan's target is one object's goal:
+drawn from both, may average to a plan that moves neither. Here each replan's target is one
+object's goal (on cube-double-play it changed nothing: results/manipulation.md):
 
 - **Objects** are groups of goal dims (`ManipSpaceSpec.goal_objects`: each cube's position, each
   button, the drawer, the window), each with its success tolerance (the goal cost's `scale`): an
@@ -50,21 +50,23 @@ class ObjectSubtasks:
         self.objects = tuple(tuple(int(i) for i in obj) for obj in objects)
         self.scale = tuple(float(v) for v in scale)
         # [O, G]: which goal dims belong to each object
-        self._members = torch.zeros(len(self.objects), len(self.scale), dtype=torch.bool)
+        self._members = torch.zeros(len(self.objects), len(self.scale))
         for o, obj in enumerate(self.objects):
-            self._members[o, list(obj)] = True
+            self._members[o, list(obj)] = 1.0
 
     def done(self, current: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
         """`[A, O]`: each object within its tolerance, from `current [A, G]` (the state's goal
         dims) and `goals [A, G]`."""
-        members = self._members.to(current.device)
         scale = torch.tensor(self.scale, dtype=current.dtype, device=current.device)
         squared = ((current - goals) / scale) ** 2  # [A, G]
-        return (squared @ members.to(squared.dtype).T) <= 1.0  # [A, O]
+        return squared @ self._members.to(current).T <= 1.0  # [A, O]
 
     def active(self, current: torch.Tensor, goals: torch.Tensor) -> torch.Tensor:
         """`[A]`: the index of each row's first object not done, or O where all are done."""
-        pending = ~self.done(current, goals)  # [A, O]
+        return self._first_pending(self.done(current, goals))
+
+    def _first_pending(self, done: torch.Tensor) -> torch.Tensor:
+        pending = ~done  # [A, O]
         first = pending.to(torch.int8).argmax(dim=-1)  # the first True (0 where none)
         return torch.where(pending.any(dim=-1), first, len(self.objects))
 
@@ -72,10 +74,8 @@ class ObjectSubtasks:
         """`[A, G]`: the goal for the active object and every object done, the current value
         for the objects still to come after it; the goal itself where every object is done."""
         done = self.done(current, goals)  # [A, O]
-        pending = ~done
-        first = pending.to(torch.int8).argmax(dim=-1)  # the active object (0 where none)
+        active = self._first_pending(done)  # [A]
         order = torch.arange(len(self.objects), device=current.device)
-        to_come = pending & (order[None, :] > first[:, None])  # [A, O]: after the active one
-        members = self._members.to(device=current.device, dtype=current.dtype)
-        leave = (to_come.to(current.dtype) @ members) > 0  # [A, G]
+        to_come = ~done & (order[None, :] > active[:, None])  # [A, O]: after the active one
+        leave = to_come.to(current.dtype) @ self._members.to(current) > 0  # [A, G]
         return torch.where(leave, current, goals)
