@@ -6,9 +6,10 @@
 # named `ema`) on seeds 0-9, then `paper` (train.e_prior: current, the paper's and the previous
 # default) on seeds 0-4, then two probes on the paper's E-step, seeds 1 and 2: `censored`
 # (train.action_likelihood) and `layernorm` (train.policy_trunk: layernorm_silu), then
-# `subgoals` on seeds 0-9: the default recipe's models deployed with the subgoal graph
-# (deploy.subgoals.enabled; trained first where missing), and `subgoals3` the same with waypoints
-# up to 3 skills ahead (deploy.subgoals.reach). Two jobs at a
+# `tau39` on seeds 0-9: the default recipe's models deployed as before the default replanned every
+# 10 steps (every skill, T = 39, with 20 CEM iterations), `subgoals` the same with the subgoal
+# graph (deploy.subgoals.enabled; trained first where missing), and `subgoals3` the same with
+# waypoints up to 3 skills ahead (deploy.subgoals.reach). Two jobs at a
 # time; 6-11 min of training and 1-2 of deploying per run on an idle 2-core CPU. A run already
 # finished is skipped, and a killed one resumes where it stopped, so the same command continues
 # a sweep.
@@ -26,12 +27,13 @@ declare -A RECIPES=(
   [paper]="-S train.e_prior=current"
   [censored]="-S train.e_prior=current -S train.action_likelihood=censored"
   [layernorm]="-S train.e_prior=current -S train.policy_trunk=layernorm_silu"
-  [subgoals]="-S deploy.subgoals.enabled=true"
-  [subgoals3]="-S deploy.subgoals.enabled=true -S deploy.subgoals.reach=3"
+  [tau39]="-S deploy.replan_every=null -S deploy.planner.iterations=20"
+  [subgoals]="-S deploy.subgoals.enabled=true -S deploy.replan_every=null -S deploy.planner.iterations=20"
+  [subgoals3]="-S deploy.subgoals.enabled=true -S deploy.subgoals.reach=3 -S deploy.replan_every=null -S deploy.planner.iterations=20"
 )
 # Recipes that only deploy differently: they deploy the model of the recipe named here (trained
 # first if it is missing), and their row repeats that training's numbers.
-declare -A DEPLOYS_MODEL_OF=([subgoals]=default [subgoals3]=default)
+declare -A DEPLOYS_MODEL_OF=([tau39]=default [subgoals]=default [subgoals3]=default)
 report_only=false
 seeds=""
 parallel=2
@@ -58,7 +60,7 @@ for recipe in default bfloat16; do
 done
 for seed in 0 1 2 3 4; do jobs+=("paper $seed"); done
 for recipe in censored layernorm; do jobs+=("$recipe 1" "$recipe 2"); done
-for recipe in subgoals subgoals3; do
+for recipe in tau39 subgoals subgoals3; do
   for seed in 0 1 2 3 4 5 6 7 8 9; do jobs+=("$recipe $seed"); done
 done
 
