@@ -2,9 +2,10 @@
 ran each planned skill whole (39 steps, the paper's maze2d tau); replanning every 10 steps
 (`deploy.replan_every`, params.yaml) reaches it.
 
-`data/pointmaze-medium-seed0/` is the main job's model (`dvc repro` with params.yaml, seed 0:
-byte-identical on every run). The episode is corners episode 3 of its deploy, whose start, goal and
-seed its `episodes.json` records. Run whole skills, the agent stops beside the wall corner at
+`data/pointmaze-medium-seed0/` is a copy of the main job's model as commit 4c7f474's dvc.lock
+records it (params.yaml, seed 0; `model.safetensors` and `config.json`, 1.7 MB), kept here so
+that the test needs no training. The episode is corners episode 3 of that model's deploy with
+whole skills, whose start, goal and seed its `episodes.json` recorded. Run whole skills, the agent stops beside the wall corner at
 (-1, 0), about 4 m from the goal, pressed against the wall while every plan asks to go round it.
 """
 
