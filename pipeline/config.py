@@ -480,9 +480,7 @@ class PlannerParams(_Section):
     horizon: int = Field(10, ge=1, description="Skills per plan, L (paper: 10).")
     candidates: int = Field(100, ge=1, description="Candidates per CEM iteration, K (paper: 100).")
     elites: int = Field(20, ge=1, description="Candidates the Gaussian is refit to, N_keep.")
-    iterations: int = Field(
-        10, ge=1, description="Maximum CEM iterations, N_iters (paper: 100; 10 on antmaze-medium)."
-    )
+    iterations: int = Field(20, ge=1, description="Maximum CEM iterations, N_iters (paper: 100).")
     init_std: float = Field(1.0, gt=0, description="Initial epsilon std (1: the skill prior).")
     min_std: float = Field(0.0, ge=0, description="Floor on the refit epsilon std.")
     prior_weight: float = Field(
@@ -640,7 +638,7 @@ class DeployParams(_Section):
     )
     num_envs: int = Field(100, ge=1, description="Environments stepped and planned together.")
     replan_every: int | None = Field(
-        10,
+        20,
         ge=1,
         description="Steps of a skill executed before the next plan, tau (paper table 14: 40 on "
         "maze2d, 10 on antmaze-large); null: the model's T (window - 1), each skill whole.",

@@ -7,7 +7,8 @@
 # default) on seeds 0-4, then two probes on the paper's E-step, seeds 1 and 2: `censored`
 # (train.action_likelihood) and `layernorm` (train.policy_trunk: layernorm_silu), then
 # `tau39` on seeds 0-9: the default recipe's models deployed as before the default replanned every
-# 10 steps (every skill, T = 39, with 20 CEM iterations), `subgoals` the same with the subgoal
+# 20 steps (every skill, T = 39), `tau10` the same replanning every 10 steps with 10 CEM
+# iterations, `subgoals` the same as tau39 with the subgoal
 # graph (deploy.subgoals.enabled; trained first where missing), and `subgoals3` the same with
 # waypoints up to 3 skills ahead (deploy.subgoals.reach). Two jobs at a
 # time; 6-11 min of training and 1-2 of deploying per run on an idle 2-core CPU. A run already
@@ -28,12 +29,13 @@ declare -A RECIPES=(
   [censored]="-S train.e_prior=current -S train.action_likelihood=censored"
   [layernorm]="-S train.e_prior=current -S train.policy_trunk=layernorm_silu"
   [tau39]="-S deploy.replan_every=null -S deploy.planner.iterations=20"
+  [tau10]="-S deploy.replan_every=10 -S deploy.planner.iterations=10"
   [subgoals]="-S deploy.subgoals.enabled=true -S deploy.replan_every=null -S deploy.planner.iterations=20"
   [subgoals3]="-S deploy.subgoals.enabled=true -S deploy.subgoals.reach=3 -S deploy.replan_every=null -S deploy.planner.iterations=20"
 )
 # Recipes that only deploy differently: they deploy the model of the recipe named here (trained
 # first if it is missing), and their row repeats that training's numbers.
-declare -A DEPLOYS_MODEL_OF=([tau39]=default [subgoals]=default [subgoals3]=default)
+declare -A DEPLOYS_MODEL_OF=([tau39]=default [tau10]=default [subgoals]=default [subgoals3]=default)
 report_only=false
 seeds=""
 parallel=2
@@ -60,7 +62,7 @@ for recipe in default bfloat16; do
 done
 for seed in 0 1 2 3 4; do jobs+=("paper $seed"); done
 for recipe in censored layernorm; do jobs+=("$recipe 1" "$recipe 2"); done
-for recipe in tau39 subgoals subgoals3; do
+for recipe in tau39 tau10 subgoals subgoals3; do
   for seed in 0 1 2 3 4 5 6 7 8 9; do jobs+=("$recipe $seed"); done
 done
 

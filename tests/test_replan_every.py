@@ -1,12 +1,13 @@
 """The main job's seed 0 got stuck on one corner-to-corner goal in 10 of 100 episodes when OPOSM
-ran each planned skill whole (39 steps, the paper's maze2d tau); replanning every 10 steps
+ran each planned skill whole (39 steps, the paper's maze2d tau); replanning every 20 steps
 (`deploy.replan_every`, params.yaml) reaches it.
 
 `data/pointmaze-medium-seed0/` is a copy of the main job's model as commit 4c7f474's dvc.lock
 records it (params.yaml, seed 0; `model.safetensors` and `config.json`, 1.7 MB), kept here so
 that the test needs no training. The episode is corners episode 3 of that model's deploy with
-whole skills, whose start, goal and seed its `episodes.json` recorded. Run whole skills, the agent stops beside the wall corner at
-(-1, 0), about 4 m from the goal, pressed against the wall while every plan asks to go round it.
+whole skills, whose start, goal and seed its `episodes.json` recorded. Run whole skills, the agent
+stops beside the wall corner at (-1, 0), about 4 m from the goal, pressed against the wall while
+every plan asks to go round it.
 """
 
 from __future__ import annotations
