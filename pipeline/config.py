@@ -640,8 +640,9 @@ class DeployParams(_Section):
     replan_every: int | None = Field(
         20,
         ge=1,
-        description="Steps of a skill executed before the next plan, tau (paper table 14: 40 on "
-        "maze2d, 10 on antmaze-large); null: the model's T (window - 1), each skill whole.",
+        description="Steps of a skill executed before the next plan, tau, at most the model's T "
+        "(window - 1) (paper table 14: 40 on maze2d, 10 on antmaze-large); null: T, each skill "
+        "whole.",
     )
     sample_actions: bool = Field(
         True, description="Sample a ~ pi(a | s, z) as in §3 (else the policy's mean action)."

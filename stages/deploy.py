@@ -158,13 +158,22 @@ def _oposm(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, devi
             value,
             subtasks,
         ),  # fmt: skip
-        cfg.replan_every or skill_horizon(meta, model_dir),
+        _tau(cfg.replan_every, skill_horizon(meta, model_dir)),
         {"model": str(model_dir), "model_step": meta.get("step"), **cfg.planner.model_dump()}
         | ({f"subgoals_{k}": v for k, v in cfg.subgoals.model_dump().items()} if subgoals else {})
         | ({"object_subtasks": True} if subtasks else {})
         | value_info,
         plan_state_steps=skill_horizon(meta, model_dir),  # a skill
     )
+
+
+def _tau(replan_every: int | None, skill_steps: int) -> int:
+    """Steps of a skill run before the next plan: `deploy.replan_every`, at most the skill's
+    length T (a skill is not run beyond the steps it was trained on); None: T."""
+    if replan_every is not None and replan_every > skill_steps:
+        log.info("deploy.replan_every %d > the skills' %d steps: replanning every %d",
+                 replan_every, skill_steps, skill_steps)  # fmt: skip
+    return min(replan_every or skill_steps, skill_steps)
 
 
 def _value(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, device, skill_steps):
@@ -289,7 +298,7 @@ def _oposm_sim(
     )  # fmt: skip
     return AgentSetup(
         agent,
-        cfg.replan_every or steps,
+        _tau(cfg.replan_every, steps),
         {
             "model": str(model_dir),
             "model_step": meta.get("step"),

@@ -317,6 +317,10 @@ for _path in ("pipeline/training/losses.py", "stages/train.py"):
 # reached 90 % of its corner-to-corner goals that way (results/stability-cpu.md). The OGBench, ant
 # and manipulation params files pin the value their results ran with (their stages would rerun
 # the same); the maze experiments on params.yaml itself would not.
+RERUN_PENDING["stages/deploy.py"] += (
+    "; deploy.replan_every at most the skills' T (the same runs: every committed one replanned "
+    "within T)"
+)
 RERUN_PENDING["deploy.replan_every"] = (
     "params.yaml's OPOSM replans every 20 steps (was every skill, T = 39): the maze experiments' "
     "OPOSM rows (mazes, em_vi, select_deploy, mass) would change; stages on a params file that "
