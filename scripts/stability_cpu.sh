@@ -28,10 +28,10 @@ declare -A RECIPES=(
   [paper]="-S train.e_prior=current"
   [censored]="-S train.e_prior=current -S train.action_likelihood=censored"
   [layernorm]="-S train.e_prior=current -S train.policy_trunk=layernorm_silu"
-  [tau39]="-S deploy.replan_every=null -S deploy.planner.iterations=20"
+  [tau39]="-S deploy.replan_every=null"
   [tau10]="-S deploy.replan_every=10 -S deploy.planner.iterations=10"
-  [subgoals]="-S deploy.subgoals.enabled=true -S deploy.replan_every=null -S deploy.planner.iterations=20"
-  [subgoals3]="-S deploy.subgoals.enabled=true -S deploy.subgoals.reach=3 -S deploy.replan_every=null -S deploy.planner.iterations=20"
+  [subgoals]="-S deploy.subgoals.enabled=true -S deploy.replan_every=null"
+  [subgoals3]="-S deploy.subgoals.enabled=true -S deploy.subgoals.reach=3 -S deploy.replan_every=null"
 )
 # Recipes that only deploy differently: they deploy the model of the recipe named here (trained
 # first if it is missing), and their row repeats that training's numbers.
