@@ -233,6 +233,12 @@ class TrainParams(_Section):
         "over the K outcomes, each predicted from the TAWM's own previous prediction (the "
         "planner's chain), so it learns from its own errors (`pipeline/training/losses.py`).",
     )
+    encoder: Literal["gru", "conv"] = Field(
+        "gru",
+        description="The skill posterior's network over a window: gru (appendix C.1's "
+        "bidirectional GRU) or conv (strided 1-D convolutions, not the paper's: EM about 2x "
+        "faster on CPU, docs/performance.md).",
+    )
     min_std: float = Field(1e-4, gt=0, description="Floor added to every predicted std.")
     batch_size: int = Field(100, ge=1, description="Windows per update step (paper: 100).")
     action_likelihood: Literal["gaussian", "censored"] = Field(

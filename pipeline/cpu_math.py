@@ -5,9 +5,12 @@ between threads: the same EM update gave different bits on 1 and 2 threads (a we
 sums over batch x window rows), so a model depended on how busy the machine was. MKL's strict
 conditional numerical reproducibility (CNR, `MKL_CBWR=<branch>,STRICT`) fixes the order of
 every sum whatever the thread count. The branch is the widest instruction set every CPU of its
-kind has: `AVX512` where the CPU has AVX-512 (so Intel Xeons of different generations and AMD's
-Zen 4 give the same bits; measured no slower than MKL's own choice), else `AVX2` (about 1.8x
-slower than AVX-512 on a CPU that has both, so never chosen there).
+kind has: `AVX512` where the CPU has AVX-512 (so Intel Xeons of different generations give the
+same bits; measured no slower than MKL's own choice), else `AVX2` (about 1.8x slower than
+AVX-512 on a CPU that has both, so never chosen there). MKL takes a named branch only on Intel
+CPUs: on AMD's it runs `AUTO,STRICT` whatever the branch asked (read back on an EPYC of the
+Zen 4 generation), the same bits on any thread count there but not Intel's; so `default_mode`
+asks for that on every other vendor's CPU.
 
 MKL reads `MKL_CBWR` once, at its first call: `set_default_environment` (called by
 `pipeline/__init__.py`, before any matrix product) sets it unless the user did; `ensure` reads
@@ -36,11 +39,15 @@ _STRICT, _ALL = 0x10000, -1
 
 
 def default_mode(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
-    """`AVX512,STRICT` on a CPU with AVX-512 (Linux's `avx512f` flag), else `AVX2,STRICT` with
-    AVX2, else `AUTO,STRICT` (MKL's choice; also where /proc/cpuinfo does not exist)."""
+    """On an Intel CPU (Linux's `GenuineIntel`), `AVX512,STRICT` with AVX-512 (the `avx512f`
+    flag), else `AVX2,STRICT` with AVX2; `AUTO,STRICT` (MKL's choice) elsewhere: on other
+    vendors' CPUs, where MKL runs that whatever branch it is given, and where /proc/cpuinfo does
+    not exist."""
     try:
         flags = set(cpuinfo.read_text(errors="replace").split())
     except OSError:
+        return "AUTO,STRICT"
+    if "GenuineIntel" not in flags:
         return "AUTO,STRICT"
     for flag, branch in (("avx512f", "AVX512"), ("avx2", "AVX2")):
         if flag in flags:

@@ -10,7 +10,8 @@
 # 20 steps (every skill, T = 39), `tau10` the same replanning every 10 steps with 10 CEM
 # iterations, `subgoals` the same as tau39 with the subgoal
 # graph (deploy.subgoals.enabled; trained first where missing), and `subgoals3` the same with
-# waypoints up to 3 skills ahead (deploy.subgoals.reach). Two jobs at a
+# waypoints up to 3 skills ahead (deploy.subgoals.reach), and `conv` the default with the
+# posterior's GRU replaced by strided convolutions (train.encoder) on seeds 0-9. Two jobs at a
 # time; 6-11 min of training and 1-2 of deploying per run on an idle 2-core CPU. A run already
 # finished is skipped, and a killed one resumes where it stopped, so the same command continues
 # a sweep.
@@ -32,6 +33,7 @@ declare -A RECIPES=(
   [tau10]="-S deploy.replan_every=10 -S deploy.planner.iterations=10"
   [subgoals]="-S deploy.subgoals.enabled=true -S deploy.replan_every=null"
   [subgoals3]="-S deploy.subgoals.enabled=true -S deploy.subgoals.reach=3 -S deploy.replan_every=null"
+  [conv]="-S train.encoder=conv"
 )
 # Recipes that only deploy differently: they deploy the model of the recipe named here (trained
 # first if it is missing), and their row repeats that training's numbers.
@@ -62,7 +64,7 @@ for recipe in default bfloat16; do
 done
 for seed in 0 1 2 3 4; do jobs+=("paper $seed"); done
 for recipe in censored layernorm; do jobs+=("$recipe 1" "$recipe 2"); done
-for recipe in tau39 tau10 subgoals subgoals3; do
+for recipe in tau39 tau10 subgoals subgoals3 conv; do
   for seed in 0 1 2 3 4 5 6 7 8 9; do jobs+=("$recipe $seed"); done
 done
 

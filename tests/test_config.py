@@ -211,15 +211,18 @@ def test_training_numbers_do_not_depend_on_the_thread_count(dtype, batch, window
 
 
 def test_cpu_math_mode_is_strict_and_its_default_follows_the_cpu(tmp_path):
-    """pipeline/__init__.py starts MKL in a strict reproducible mode: AVX-512's branch on a CPU
-    that has it, AVX2's on one that has only that, MKL's own choice elsewhere."""
+    """pipeline/__init__.py starts MKL in a strict reproducible mode: on an Intel CPU AVX-512's
+    branch where it has it, AVX2's where it has only that; MKL's own choice elsewhere (other
+    vendors' CPUs, where MKL takes no named branch: read back as AUTO on an AMD EPYC)."""
     from pipeline import cpu_math
 
     assert cpu_math.mode() == os.environ["MKL_CBWR"].upper()
-    cases = {"fpu avx2 avx512f avx512bw": "AVX512,STRICT", "fpu sse4_2 avx avx2 fma": "AVX2,STRICT",
-             "fpu sse2": "AUTO,STRICT"}  # fmt: skip
-    for flags, expected in cases.items():
-        (tmp_path / "cpuinfo").write_text(f"flags\t\t: {flags}\n")
+    cases = {("GenuineIntel", "fpu avx2 avx512f avx512bw"): "AVX512,STRICT",
+             ("GenuineIntel", "fpu sse4_2 avx avx2 fma"): "AVX2,STRICT",
+             ("GenuineIntel", "fpu sse2"): "AUTO,STRICT",
+             ("AuthenticAMD", "fpu avx2 avx512f avx512bw"): "AUTO,STRICT"}  # fmt: skip
+    for (vendor, flags), expected in cases.items():
+        (tmp_path / "cpuinfo").write_text(f"vendor_id\t: {vendor}\nflags\t\t: {flags}\n")
         assert cpu_math.default_mode(tmp_path / "cpuinfo") == expected
     assert cpu_math.default_mode(tmp_path / "absent") == "AUTO,STRICT"
 

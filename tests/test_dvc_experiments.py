@@ -279,6 +279,9 @@ RERUN_PENDING |= {
     "batches and updates)"
     for path in ("pipeline/training/data.py", "pipeline/training/cuda_graphs.py")
 }  # fmt: skip
+RERUN_PENDING["train.encoder"] = (
+    "a new key of `train` at its default (gru, the paper's posterior): the same runs"
+)
 RERUN_PENDING["deploy.object_subtasks"] = (
     "a new key of `deploy` at its default (false, the paper's whole-goal plans): the same runs"
 )
@@ -286,7 +289,8 @@ RERUN_PENDING["deploy.object_subtasks"] = (
 # the rollout, the planner's networks and the validation metrics; with one component every
 # computation is the one before (tests/test_tawm_mixture.py, tests/test_planning.py).
 RERUN_PENDING |= {
-    path: "the mixture TAWM (train.tawm_components, 1 by default: the same computations)"
+    path: "the mixture TAWM (train.tawm_components, 1 by default) and the conv posterior "
+    "(train.encoder, gru by default): the same computations"
     for path in ("pipeline/model", "pipeline/planning", "pipeline/training/losses.py")
 }  # fmt: skip
 # The Adam loop of the single-step model, BC and GCBC in one place (`training/keep_best.py`): the

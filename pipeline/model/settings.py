@@ -36,6 +36,7 @@ def skill_model_config(
         policy_layer_norm=cfg.policy_trunk == "layernorm_silu",
         policy_ignore_dims=tuple(cfg.policy_ignore_dims),
         tawm_components=cfg.tawm_components,
+        encoder=cfg.encoder,
     )
 
 

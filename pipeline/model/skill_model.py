@@ -11,6 +11,7 @@ from dataclasses import asdict, dataclass
 
 import torch
 from torch import nn
+from torch.nn import functional as F
 from torch.distributions import Categorical, Distribution, Independent, MixtureSameFamily, Normal
 
 from pipeline.model.networks import GaussianHead, GaussianMLP, MixtureGaussianMLP
@@ -49,6 +50,9 @@ class SkillModelConfig:
         tawm_components: Gaussians in p_psi: 1 is the paper's TAWM; K > 1 a mixture of K
             (`networks.MixtureGaussianMLP`), whose most probable component's mean is what the
             planner and the open loop chain.
+        encoder: The posterior's sequence network: "gru" (appendix C.1's bidirectional GRU)
+            or "conv" (strided 1-D convolutions, `ConvEncoder`: about a third of the GRU's
+            products and no step-by-step recurrence).
     """
 
     state_dim: Size
@@ -62,6 +66,7 @@ class SkillModelConfig:
     policy_layer_norm: bool = False
     policy_ignore_dims: tuple[Count, ...] = ()
     tawm_components: Size = 1
+    encoder: str = "gru"
 
     def __post_init__(self) -> None:
         ignore = tuple(sorted({int(d) for d in self.policy_ignore_dims}))
@@ -71,6 +76,8 @@ class SkillModelConfig:
                 f"0 to {self.state_dim - 1}"
             )
         object.__setattr__(self, "policy_ignore_dims", ignore)
+        if self.encoder not in ENCODERS:
+            raise ValueError(f"encoder must be one of {', '.join(ENCODERS)}, got {self.encoder!r}")
         bounds = (self.action_low, self.action_high)
         if (bounds[0] is None) != (bounds[1] is None):
             raise ValueError("action_low and action_high come together (both or neither)")
@@ -122,23 +129,67 @@ def diag_normal(mean: torch.Tensor, std: torch.Tensor) -> Independent:
     return Independent(Normal(mean, std, validate_args=False), 1, validate_args=False)
 
 
+class ConvEncoder(nn.Module):
+    """A window's summary by strided 1-D convolutions (not the paper's; `encoder: conv`): two
+    layers of kernel `KERNEL`, stride `STRIDE` (zero-padded to keep every step) and ReLU over the
+    sequence, then its average over `POOLED` stretches of the window (adaptive average pooling:
+    stretch i covers steps floor(i L / POOLED) to ceil((i + 1) L / POOLED) of the L left),
+    flattened in time order, so the summary keeps what happens early apart from what happens
+    late.
+
+    Each layer is a product of a window of steps with one matrix (an unfolded convolution), so it
+    runs through the same matrix kernels as every linear layer (bit-reproducible on CPU whatever
+    the thread count, `pipeline/cpu_math.py`). At the main job's sizes it costs about a third of
+    the bidirectional GRU's products, and its steps run in parallel instead of one after another.
+    """
+
+    KERNEL, STRIDE, POOLED = 5, 2, 4
+
+    def __init__(self, in_dim: int, hidden: int):
+        super().__init__()
+        self.layers = nn.ModuleList(
+            [nn.Linear(in_dim * self.KERNEL, hidden), nn.Linear(hidden * self.KERNEL, hidden)]
+        )
+        self.out_dim = hidden * self.POOLED
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """`x [B, T, in_dim]` -> `[B, POOLED * hidden]`."""
+        pad = (self.KERNEL - 1) // 2
+        for layer in self.layers:
+            windows = F.pad(x, (0, 0, pad, pad)).unfold(1, self.KERNEL, self.STRIDE)
+            x = F.relu(layer(windows.flatten(2)))  # [B, L, hidden], L = ceil(T / STRIDE)
+        pooled = F.adaptive_avg_pool1d(x.transpose(1, 2), self.POOLED)  # [B, hidden, POOLED]
+        return pooled.transpose(1, 2).flatten(1)
+
+
+ENCODERS = ("gru", "conv")
+
+
 class SkillPosterior(nn.Module):
     """q_phi(z | s_0..T-1, a_0..T-1), appendix C.1.
 
     States pass through Linear + ReLU; embedded states concatenated with actions feed a one-layer
     bidirectional GRU; the final hidden states of both directions feed the mean and std heads.
+    With `encoder: conv` a `ConvEncoder` takes the GRU's place.
     """
 
     def __init__(self, config: SkillModelConfig):
         super().__init__()
         h = config.hidden
         self.embed = nn.Sequential(nn.Linear(config.state_dim, h), nn.ReLU())
-        self.gru = nn.GRU(h + config.action_dim, h, batch_first=True, bidirectional=True)
-        self.head = GaussianHead(2 * h, h, config.z_dim, min_std=config.min_std)
+        if config.encoder == "gru":
+            self.gru = nn.GRU(h + config.action_dim, h, batch_first=True, bidirectional=True)
+            summary = 2 * h
+        else:
+            self.conv = ConvEncoder(h + config.action_dim, h)
+            summary = self.conv.out_dim
+        self.head = GaussianHead(summary, h, config.z_dim, min_std=config.min_std)
 
     def forward(self, states: torch.Tensor, actions: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """Normalized `states [B, T, sd]`, `actions [B, T, ad]` -> mean, std `[B, z_dim]`."""
         x = torch.cat([self.embed(states), actions], dim=-1)
+        if hasattr(self, "conv"):
+            return self.head(self.conv(x))
         _, h_n = self.gru(x)  # [2, B, h]: last hidden state of the forward and backward passes
         return self.head(torch.cat([h_n[0], h_n[1]], dim=-1))
 
