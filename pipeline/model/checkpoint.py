@@ -194,7 +194,7 @@ def skill_horizon(meta: dict[str, Any], directory: str | Path) -> int:
 
 def config_differences(a: SkillModelConfig, b: SkillModelConfig) -> list[str]:
     """`field: a != b` for each field where the two configs differ."""
-    da, db = a.to_dict(), b.to_dict()
+    da, db = asdict(a), asdict(b)
     return [f"{k}: {da[k]!r} != {db[k]!r}" for k in da if da[k] != db[k]]
 
 

@@ -94,7 +94,12 @@ class SkillModelConfig:
         return self.action_low is not None
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        """The fields, without `encoder` where it is the paper's GRU: a checkpoint's config.json
+        stays the bytes it was before the field existed (`load` reads its absence as "gru")."""
+        fields = asdict(self)
+        if fields["encoder"] == "gru":
+            del fields["encoder"]
+        return fields
 
 
 # An action within this many normalized units of a bound counts as clipped to it.
