@@ -45,8 +45,10 @@ def bench_train(
     segments = load_segments(paths.segments(params.ingest.name))
     with torch_threads(auto_threads(cfg.threads) if device.type == "cpu" else None):
         log.info(
-            "timing %d %s steps (after %d warm-up) on %s: z %d, hidden %d, batch %d, %s%s",
-            steps, cfg.method, warmup, device, cfg.z_dim, cfg.hidden, cfg.batch_size, cfg.dtype,
+            "timing %d %s steps (after %d warm-up) on %s: z %d, hidden %d, batch %d, %s "
+            "encoder, %s%s",
+            steps, cfg.method, warmup, device, cfg.z_dim, cfg.hidden, cfg.batch_size,
+            cfg.encoder, cfg.dtype,
             ", CUDA graphs" if cfg.cuda_graph and device.type == "cuda" else "",
         )  # fmt: skip
         out: dict[str, float] = {"load_1min_before": os.getloadavg()[0]}
