@@ -59,5 +59,7 @@ def _episode(replan_every: int, iterations: int):
 def test_seed0_corner_episode(replan_every, iterations, reached):
     result = _episode(replan_every, iterations)
     assert result.success is reached, (result.min_distance, result.steps)
-    if not reached:  # stuck by the wall, ~4 m away, not merely slow
-        assert result.min_distance > 3.5 and result.steps == 600
+    if not reached:  # stuck by the wall, metres away, not merely slow (the closest it came:
+        # about 4 m on the Intel CPU the model was trained on, 3.1 m on an AMD one, whose matrix
+        # products round differently: pipeline/cpu_math.py)
+        assert result.min_distance > 2.5 and result.steps == 600

@@ -66,7 +66,11 @@ def test_a_plan_scored_in_the_simulator_predicts_what_executing_it_does(maze):
     sim = BatchSim(spec, 3)
     sim.set_state(physics)
     executed = execute_skills(model, sim, plan.z, STEPS, sample_actions=False).states
-    assert torch.equal(plan.states, torch.as_tensor(executed[:, ::STEPS], dtype=torch.float32))
+    # The same bits where MKL's products do not depend on how many rows a batch has (Intel's
+    # AVX-512 branch); MKL's own path on AMD CPUs rounds the 18 scored rollouts and the 3
+    # executed ones apart in the last bits (measured: 4e-9).
+    executed = torch.as_tensor(executed[:, ::STEPS], dtype=torch.float32)
+    torch.testing.assert_close(plan.states, executed, rtol=0, atol=1e-6)
     assert torch.equal(plan.cost, GoalCost(goals, (0, 1))(plan.states[:, None])[:, 0])
 
 
