@@ -136,7 +136,7 @@ def markdown(rows: list[dict], stamped: dict) -> str:
         "first columns repeat default's) deployed with the subgoal graph "
         "(`deploy.subgoals.enabled: true`), subgoals3 the same with waypoints up to 3 skills "
         "ahead (`deploy.subgoals.reach: 3`); conv = the default with the posterior's GRU "
-        "replaced by strided convolutions (`train.encoder: conv`, not the paper's; EM 2.5x the "
+        "replaced by strided convolutions (`train.encoder: conv`, not the paper's; EM about 2x the "
         "steps/s).",
         "",
         "| recipe | seed | published step | val s_T NLL, prior skills | diverged | random_goal, % "
