@@ -18,6 +18,10 @@ from pipeline.model.networks import GaussianHead, GaussianMLP, MixtureGaussianML
 from pipeline.readback import Count, Finite, PositiveFinite, Size
 
 
+# The posterior's sequence networks (`SkillModelConfig.encoder`, `train.encoder`).
+ENCODERS = ("gru", "conv")
+
+
 @dataclass(frozen=True)
 class SkillModelConfig:
     """Everything needed to rebuild a `SkillModel` (stored as the checkpoint's config.json).
@@ -167,9 +171,6 @@ class ConvEncoder(nn.Module):
         return pooled.transpose(1, 2).flatten(1)
 
 
-ENCODERS = ("gru", "conv")
-
-
 class SkillPosterior(nn.Module):
     """q_phi(z | s_0..T-1, a_0..T-1), appendix C.1.
 
@@ -182,7 +183,8 @@ class SkillPosterior(nn.Module):
         super().__init__()
         h = config.hidden
         self.embed = nn.Sequential(nn.Linear(config.state_dim, h), nn.ReLU())
-        if config.encoder == "gru":
+        self.encoder = config.encoder
+        if self.encoder == "gru":
             self.gru = nn.GRU(h + config.action_dim, h, batch_first=True, bidirectional=True)
             summary = 2 * h
         else:
@@ -193,7 +195,7 @@ class SkillPosterior(nn.Module):
     def forward(self, states: torch.Tensor, actions: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """Normalized `states [B, T, sd]`, `actions [B, T, ad]` -> mean, std `[B, z_dim]`."""
         x = torch.cat([self.embed(states), actions], dim=-1)
-        if hasattr(self, "conv"):
+        if self.encoder == "conv":
             return self.head(self.conv(x))
         _, h_n = self.gru(x)  # [2, B, h]: last hidden state of the forward and backward passes
         return self.head(torch.cat([h_n[0], h_n[1]], dim=-1))
