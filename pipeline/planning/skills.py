@@ -20,7 +20,7 @@ Optionally the objective adds `prior_weight * mean(eps^2)`, the whitened skills'
 up to constants (MAP-style planning). The paper plans on the task cost alone (§3); with a small,
 briefly trained TAWM (this repository's CPU defaults) CEM otherwise finds unlikely skills whose
 predicted end states are wrong (e.g. through walls), and the penalty keeps plans where the model
-was trained (measured: `deploy.planner.prior_weight` in docs/history.md).
+was trained (measured: `deploy.planner.prior_weight` in docs/findings.md).
 """
 
 from __future__ import annotations
