@@ -234,10 +234,10 @@ class TrainParams(_Section):
         "planner's chain), so it learns from its own errors (`pipeline/training/losses.py`).",
     )
     encoder: Literal["gru", "conv"] = Field(
-        "gru",
-        description="The skill posterior's network over a window: gru (appendix C.1's "
-        "bidirectional GRU) or conv (strided 1-D convolutions, not the paper's: EM about 2x "
-        "faster on CPU, docs/performance.md).",
+        "conv",
+        description="The skill posterior's network over a window: conv (strided 1-D "
+        "convolutions, not the paper's: EM about 2x faster on CPU, the same deploy success on "
+        "seeds 0-9, docs/performance.md) or gru (appendix C.1's bidirectional GRU).",
     )
     min_std: float = Field(1e-4, gt=0, description="Floor added to every predicted std.")
     batch_size: int = Field(100, ge=1, description="Windows per update step (paper: 100).")
@@ -538,10 +538,15 @@ class PlannerParams(_Section):
 
 
 class SubgoalParams(_Section):
-    """`deploy.subgoals`: aim each replan at a waypoint from a graph of the data's skills when
-    the goal is more than `reach` skills away (`pipeline/planning/subgoals.py`)."""
+    """`deploy.subgoals`: once an episode stops getting closer to its goal (`patience`), aim
+    each replan at a waypoint from a graph of the data's skills when the goal is more than
+    `reach` skills away (`pipeline/planning/subgoals.py`)."""
 
-    enabled: bool = Field(False, description="Plan to waypoints (false: to the goal, the paper).")
+    enabled: bool = Field(
+        True,
+        description="Plan to waypoints (when stuck, with `patience`); false: always to the goal, "
+        "the paper.",
+    )
     cell: float = Field(
         0.25, gt=0, description="Grid side (m) of the graph's nodes over the goal dimensions."
     )
@@ -557,6 +562,20 @@ class SubgoalParams(_Section):
         description="Aim at the goal, or at a waypoint, only when the straight line to it crosses "
         "cells the data visits (no wall between), else at the best waypoint in sight; false: "
         "by skill hops alone.",
+    )
+    patience: int | None = Field(
+        2,
+        ge=1,
+        description="Plan to the goal itself until an episode has gone this many replans "
+        "without getting `progress` closer to it than ever before, then to the graph's "
+        "waypoints for the rest of the episode (the straight-line cost's local minimum behind "
+        "a wall is where this happens); null: waypoints from the first replan.",
+    )
+    progress: float = Field(
+        0.25,
+        gt=0,
+        description="What counts as getting closer for `patience`: the goal distance (goal "
+        "units, m in a maze) below the episode's best so far by at least this much.",
     )
 
 

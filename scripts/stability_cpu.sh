@@ -1,20 +1,19 @@
 #!/usr/bin/env bash
 # results/stability-cpu.{md,json}: EM across seeds, each run trained (`oposm train`, the main
 # job's params, one torch thread) then deployed on the main job's tasks, 100 random goals and 100
-# corner-to-corner episodes (`oposm deploy`). Recipes (RECIPES below): `default` (the shipped
-# params: train.e_prior ema, float32) and `bfloat16` (the same in bfloat16; the earlier rows
-# named `ema`) on seeds 0-9, then `paper` (train.e_prior: current, the paper's and the previous
-# default) on seeds 0-4, then two probes on the paper's E-step, seeds 1 and 2: `censored`
-# (train.action_likelihood) and `layernorm` (train.policy_trunk: layernorm_silu), then
-# `tau39` on seeds 0-9: the default recipe's models deployed as before the default replanned every
-# 20 steps (every skill, T = 39), `tau10` the same replanning every 10 steps with 10 CEM
-# iterations, `subgoals` the same as tau39 with the subgoal
-# graph (deploy.subgoals.enabled; trained first where missing), and `subgoals3` the same with
-# waypoints up to 3 skills ahead (deploy.subgoals.reach), and `conv` the default with the
-# posterior's GRU replaced by strided convolutions (train.encoder) on seeds 0-9. Two jobs at a
-# time; 6-11 min of training and 1-2 of deploying per run on an idle 2-core CPU. A run already
-# finished is skipped, and a killed one resumes where it stopped, so the same command continues
-# a sweep.
+# corner-to-corner episodes (`oposm deploy`). Recipes (RECIPES below), seeds 0-9 unless said:
+# `default` (the shipped params: the conv posterior, the subgoal graph once an episode is stuck;
+# it deploys `conv`'s models, the same training), `gru` (the default before: the paper's GRU
+# posterior, no subgoal graph), `bfloat16` (gru in bfloat16; earlier rows named `ema`), `paper`
+# (gru with train.e_prior: current, the paper's E-step) on seeds 0-4, two probes on the paper's
+# E-step on seeds 1 and 2: `censored` (train.action_likelihood) and `layernorm`
+# (train.policy_trunk: layernorm_silu); gru's models deployed differently: `tau39` (each skill
+# run whole, T = 39), `tau10` (replanning every 10 steps with 10 CEM iterations), `subgoals`
+# (tau39 with the subgoal graph from the first replan) and `subgoals3` (the same with waypoints
+# up to 3 skills ahead); `conv` (gru's deploy with the posterior's GRU replaced by strided
+# convolutions, train.encoder). Two jobs at a time; 3-11 min of training and 1-3 of deploying
+# per run on an idle 2-core CPU. A run already finished is skipped, and a killed one resumes
+# where it stopped, so the same command continues a sweep.
 # `bash scripts/stability_cpu.sh RECIPE...` runs only those recipes, `--seeds 0,3` only those
 # seeds of them, `--jobs 1` one run at a time (beside another job on the other core); the report
 # keeps every row not rerun here from the committed results/stability-cpu.json (with its commit
@@ -23,21 +22,26 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 runs=data/runs
+# The GRU recipes pin what the shipped params were before the conv posterior and the stuck
+# subgoal graph became the default (`gru` is that default; its rows were named `default`).
+gru="-S train.encoder=gru -S deploy.subgoals.enabled=false"
 declare -A RECIPES=(
   [default]=""
-  [bfloat16]="-S train.dtype=bfloat16"
-  [paper]="-S train.e_prior=current"
-  [censored]="-S train.e_prior=current -S train.action_likelihood=censored"
-  [layernorm]="-S train.e_prior=current -S train.policy_trunk=layernorm_silu"
-  [tau39]="-S deploy.replan_every=null"
-  [tau10]="-S deploy.replan_every=10 -S deploy.planner.iterations=10"
-  [subgoals]="-S deploy.subgoals.enabled=true -S deploy.replan_every=null"
-  [subgoals3]="-S deploy.subgoals.enabled=true -S deploy.subgoals.reach=3 -S deploy.replan_every=null"
-  [conv]="-S train.encoder=conv"
+  [gru]="$gru"
+  [bfloat16]="$gru -S train.dtype=bfloat16"
+  [paper]="$gru -S train.e_prior=current"
+  [censored]="$gru -S train.e_prior=current -S train.action_likelihood=censored"
+  [layernorm]="$gru -S train.e_prior=current -S train.policy_trunk=layernorm_silu"
+  [tau39]="$gru -S deploy.replan_every=null"
+  [tau10]="$gru -S deploy.replan_every=10 -S deploy.planner.iterations=10"
+  [subgoals]="$gru -S deploy.subgoals.enabled=true -S deploy.subgoals.patience=null -S deploy.replan_every=null"
+  [subgoals3]="$gru -S deploy.subgoals.enabled=true -S deploy.subgoals.patience=null -S deploy.subgoals.reach=3 -S deploy.replan_every=null"
+  [conv]="-S train.encoder=conv -S deploy.subgoals.enabled=false"
 )
 # Recipes that only deploy differently: they deploy the model of the recipe named here (trained
-# first if it is missing), and their row repeats that training's numbers.
-declare -A DEPLOYS_MODEL_OF=([tau39]=default [tau10]=default [subgoals]=default [subgoals3]=default)
+# first if it is missing), and their row repeats that training's numbers. The default trains as
+# `conv` does (the same train section).
+declare -A DEPLOYS_MODEL_OF=([default]=conv [tau39]=gru [tau10]=gru [subgoals]=gru [subgoals3]=gru)
 report_only=false
 seeds=""
 parallel=2
@@ -59,7 +63,7 @@ wanted() {  # recipe seed
     { [[ -z "$seeds" ]] || [[ ",$seeds," == *",$2,"* ]]; }
 }
 jobs=()
-for recipe in default bfloat16; do
+for recipe in default gru bfloat16; do
   for seed in 0 1 2 3 4 5 6 7 8 9; do jobs+=("$recipe $seed"); done
 done
 for seed in 0 1 2 3 4; do jobs+=("paper $seed"); done

@@ -64,7 +64,7 @@ from pipeline.planning.mpc import SkillMPC
 from pipeline.planning.settings import llp_config, planner_config
 from pipeline.planning.simulated import SimulatedRollout, SimulatedSkillMPC, SimulatorPlanner
 from pipeline.planning.skills import SkillPlanner
-from pipeline.planning.subgoals import SubgoalGraph
+from pipeline.planning.subgoals import StuckWatch, SubgoalGraph
 from pipeline.planning.subtasks import ObjectSubtasks
 from pipeline.segments import Segments, load_segments
 from pipeline.value.network import load_value
@@ -132,9 +132,14 @@ def _oposm(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, devi
         subgoals = SubgoalGraph.from_segments(
             segments, spec.goal_dims, sub.cell, sub.reach, device, line_of_sight=sub.line_of_sight
         )
-        log.info("subgoal graph: %d nodes (cells of %g m), reach %d skills%s",
+        log.info("subgoal graph: %d nodes (cells of %g m), reach %d skills%s%s",
                  len(subgoals.nodes), sub.cell, sub.reach,
-                 ", line of sight" if sub.line_of_sight else "")  # fmt: skip
+                 ", line of sight" if sub.line_of_sight else "",
+                 f", once {sub.patience} replans bring no {sub.progress} m closer"
+                 if sub.patience else "")  # fmt: skip
+    stuck = None
+    if subgoals is not None and cfg.subgoals.patience is not None:
+        stuck = StuckWatch(cfg.subgoals.patience, cfg.subgoals.progress)
     subtasks = None
     if cfg.object_subtasks:
         if not isinstance(spec, ManipSpaceSpec):
@@ -157,14 +162,28 @@ def _oposm(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, devi
             getattr(spec, "goal_scale", None),
             value,
             subtasks,
+            stuck,
         ),  # fmt: skip
         _tau(cfg.replan_every, skill_horizon(meta, model_dir)),
         {"model": str(model_dir), "model_step": meta.get("step"), **cfg.planner.model_dump()}
-        | ({f"subgoals_{k}": v for k, v in cfg.subgoals.model_dump().items()} if subgoals else {})
+        | (
+            {f"subgoals_{k}": v for k, v in _subgoal_settings(cfg.subgoals).items()}
+            if subgoals
+            else {}
+        )
         | ({"object_subtasks": True} if subtasks else {})
         | value_info,
         plan_state_steps=skill_horizon(meta, model_dir),  # a skill
     )
+
+
+def _subgoal_settings(sub) -> dict:
+    """`deploy.subgoals` as the report names it; `patience` and `progress` only when the graph
+    waits for a stuck episode (reports from before they existed read the same)."""
+    settings = sub.model_dump()
+    if sub.patience is None:
+        del settings["patience"], settings["progress"]
+    return settings
 
 
 def _tau(replan_every: int | None, skill_steps: int) -> int:

@@ -422,9 +422,11 @@ def test_values_that_cannot_work_are_refused_without_dumping_the_section(overrid
 
 def test_reach_above_the_horizon_is_refused_even_while_subgoals_are_off():
     params = load_params("params.yaml", ["deploy.subgoals.reach=10"])  # = horizon: fine
-    assert not params.deploy.subgoals.enabled
+    assert params.deploy.subgoals.enabled
     with pytest.raises(UserError, match="lower subgoals.reach or raise planner.horizon"):
         load_params("params.yaml", ["deploy.subgoals.reach=11"])
+    with pytest.raises(UserError, match="lower subgoals.reach or raise planner.horizon"):
+        load_params("params.yaml", ["deploy.subgoals.enabled=false", "deploy.subgoals.reach=11"])
 
 
 def test_an_ogbench_file_that_names_no_maze_must_fit_env_id_and_says_which_maze_it_fits(tmp_path):

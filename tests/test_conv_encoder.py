@@ -6,9 +6,9 @@ import json
 
 import pytest
 import torch
-from torch.utils.flop_counter import FlopCounterMode
 from factories import make_info, make_skill_episodes, skill_model_config, train_updater
 from torch.nn import functional as F
+from torch.utils.flop_counter import FlopCounterMode
 
 from pipeline import cpu_math
 from pipeline.model import SkillModel, load_model, save_model

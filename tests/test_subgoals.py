@@ -9,7 +9,7 @@ from factories import make_info, make_skill_episodes, planner_config, skill_mode
 from pipeline.model import SkillModel
 from pipeline.planning import SkillPlanner
 from pipeline.planning.mpc import SkillMPC
-from pipeline.planning.subgoals import SubgoalGraph
+from pipeline.planning.subgoals import StuckWatch, SubgoalGraph
 from pipeline.segments import build_segments
 
 
@@ -182,3 +182,54 @@ def test_line_of_sight_changes_nothing_in_the_open():
     positions, goals = (torch.rand(64, 2, generator=gen) * 2.9 for _ in range(2))
     want = plain.waypoints(positions, goals)
     torch.testing.assert_close(sighted.waypoints(positions, goals), want)
+
+
+def test_stuck_watch_counts_replans_without_progress_and_latches():
+    watch = StuckWatch(patience=2, progress=0.25)
+    watch.reset(3, "cpu")
+    rows = torch.tensor([0, 1, 2])
+    # slot 0 closes in, slot 1 stalls (0.2 closer is not 0.25), slot 2 drifts away
+    for distances in ([4.0, 4.0, 4.0], [3.5, 3.8, 4.5]):
+        stuck = watch.update(rows, torch.tensor(distances))
+        assert not stuck.any()
+    stuck = watch.update(rows, torch.tensor([3.0, 3.9, 4.2]))
+    assert stuck.tolist() == [False, True, True]
+    # a stuck episode stays stuck, even once it gets closer; only slot 0's stall counts anew
+    stuck = watch.update(rows, torch.tensor([3.0, 1.0, 1.0]))
+    assert stuck.tolist() == [False, True, True]
+    assert watch.update(rows[:1], torch.tensor([2.9])).tolist() == [True]
+    watch.reset(3, "cpu")
+    assert not watch.update(rows, torch.tensor([9.0, 9.0, 9.0])).any()
+    with pytest.raises(ValueError, match="patience"):
+        StuckWatch(0, 0.25)
+    with pytest.raises(ValueError, match="progress"):
+        StuckWatch(1, 0.0)
+
+
+def test_mpc_aims_at_the_goal_until_the_episode_is_stuck_then_at_waypoints():
+    """Two episodes from the left leg's foot to the right one's (a wall between): the one that
+    stays put switches to the graph's waypoint (up the left leg) after `patience` replans; the one
+    that keeps getting closer plans to the goal itself throughout."""
+    graph = _graph(reach=5)
+    torch.manual_seed(0)
+    model = SkillModel(skill_model_config(4, 2, z_dim=4, hidden=16)).eval()
+    planner = planner_config(horizon=5, candidates=16, elites=4, iterations=2, prior_weight=0.0)
+    agent = SkillMPC(
+        model, SkillPlanner(model, planner), False, goal_dims=(0, 1), subgoals=graph,
+        stuck=StuckWatch(patience=2, progress=0.25),
+    )  # fmt: skip
+    goal = np.array([[4.0, 0.0], [4.0, 0.0]])
+    agent.reset(goal, seeds=[0, 1])
+    states = np.zeros((2, 4))
+    rows = np.array([0, 1])
+    for replan in range(4):
+        agent.replan(rows, states)
+        targets = agent.targets.numpy()
+        torch.testing.assert_close(agent.targets[1], torch.tensor([4.0, 0.0]))
+        if replan < 2:
+            torch.testing.assert_close(agent.targets[0], torch.tensor([4.0, 0.0]))
+        else:  # stuck: up the left leg, round the wall
+            assert abs(targets[0, 0]) < 0.3 and targets[0, 1] > 1.0
+        states[1, 0] += 0.5  # slot 1 gets closer each replan (through the wall: only a test)
+    with pytest.raises(ValueError, match="give it subgoals"):
+        SkillMPC(model, SkillPlanner(model, planner), False, stuck=StuckWatch(2, 0.25))

@@ -132,9 +132,7 @@ def _stage_params(**train) -> Params:
     return Params.model_validate({"ingest": {"name": "skills"}, "train": small | steps | train})
 
 
-def test_the_train_stage_runs_a_chained_tawm_and_one_skill_keeps_its_resume_key(
-    tmp_path, segments
-):
+def test_the_train_stage_runs_a_chained_tawm_and_one_skill_keeps_its_resume_key(tmp_path, segments):
     from stages import train
 
     save_segments(segments, tmp_path / "data" / "segments" / "skills")

@@ -11,12 +11,11 @@ from dataclasses import asdict, dataclass
 
 import torch
 from torch import nn
-from torch.nn import functional as F
 from torch.distributions import Categorical, Distribution, Independent, MixtureSameFamily, Normal
+from torch.nn import functional as F
 
 from pipeline.model.networks import GaussianHead, GaussianMLP, MixtureGaussianMLP
 from pipeline.readback import Count, Finite, PositiveFinite, Size
-
 
 # The posterior's sequence networks (`SkillModelConfig.encoder`, `train.encoder`).
 ENCODERS = ("gru", "conv")

@@ -19,7 +19,7 @@ from pipeline.model.skill_model import SkillModel
 from pipeline.planning.costs import GoalCost, ValueGoalCost
 from pipeline.planning.noise import normal, problem_keys, substream
 from pipeline.planning.skills import Plan, SkillPlanner, shift_plan
-from pipeline.planning.subgoals import SubgoalGraph
+from pipeline.planning.subgoals import StuckWatch, SubgoalGraph
 from pipeline.planning.subtasks import ObjectSubtasks
 
 # `(states [..., sd], goals [..., G]) -> [...]` steps to the goal (a learned value's).
@@ -45,6 +45,8 @@ class SkillMPC:
             T, for `ValueGoalCost` (`value.weight`); None: the paper's `GoalCost`.
         subtasks: Plan to one object of the goal at a time (`deploy.object_subtasks`); None:
             to the whole goal (the paper).
+        stuck: With `subgoals`: plan to the goal until this says an episode is stuck, then to
+            the waypoints (`deploy.subgoals.patience`); None: waypoints from the first replan.
     """
 
     name = "oposm"
@@ -60,10 +62,14 @@ class SkillMPC:
         goal_scale: Sequence[float] | None = None,
         value: tuple[StepsToGo, float, int] | None = None,
         subtasks: ObjectSubtasks | None = None,
+        stuck: StuckWatch | None = None,
     ):
         if subgoals is not None and subtasks is not None:
             raise ValueError("plan to waypoints (subgoals) or to one object at a time, not both")
+        if stuck is not None and subgoals is None:
+            raise ValueError("a stuck watch switches to subgoals' waypoints: give it subgoals")
         self.model = model
+        self.stuck = stuck
         self.subtasks = subtasks
         self.value = value
         self.goal_scale = goal_scale
@@ -95,6 +101,8 @@ class SkillMPC:
         self._eps = self.planner.initial_mean(b)
         self._z = torch.zeros(b, self.model.config.z_dim, device=self.device)
         self._warm = torch.zeros(b, dtype=torch.bool, device=self.device)
+        if self.stuck is not None:
+            self.stuck.reset(b, self.device)
 
     def replan(self, rows: np.ndarray, states: np.ndarray) -> Plan:
         """Plan for slots `rows [A]` from their states `[A, sd]`; their next skill is the plan's
@@ -108,7 +116,11 @@ class SkillMPC:
         targets, cfg = self._goals[idx], self.planner.config
         if self.subgoals is not None:
             dims = list(self.goal_dims or range(targets.shape[-1]))
-            targets = self.subgoals.waypoints(s0[:, dims], targets)
+            waypoints = self.subgoals.waypoints(s0[:, dims], targets)
+            if self.stuck is not None:  # the goal itself until the episode is stuck
+                far = (s0[:, dims] - targets).norm(dim=-1)
+                waypoints = torch.where(self.stuck.update(idx, far)[:, None], waypoints, targets)
+            targets = waypoints
             self.targets = targets
         if self.subtasks is not None:
             dims = list(self.goal_dims or range(targets.shape[-1]))

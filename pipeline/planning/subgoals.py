@@ -26,6 +26,11 @@ The graph gives the planner a nearer target that leads round.
   own node), and the waypoint is the best node in sight of the agent's node, when one is fewer
   skills from the goal than the agent's node; otherwise the rule above.
 
+**Only when stuck** (`patience`, `StuckWatch`): an episode plans to the goal itself, as the
+paper does, until it has gone `patience` replans without getting `progress` closer to the goal
+than ever before; from then on, to the graph's waypoints. Episodes that never meet a wall's local
+minimum keep the paper's plans.
+
 Only the offline data is used: no maze layout and no simulator. This resembles "search on the
 replay buffer" (Eysenbach et al., 2019), with the data's own skills as edges.
 """
@@ -189,3 +194,45 @@ class Occupancy:
         inside = ((index >= 0) & (index < self.shape)).all(dim=-1)
         flat = (torch.minimum(index.clamp(min=0), self.shape - 1) * self.strides).sum(dim=-1)
         return (inside & self.grid[flat]).all(dim=-1)
+
+
+class StuckWatch:
+    """Per environment slot, whether its episode has stopped getting closer to its goal.
+
+    At each replan a slot's goal distance is compared with the best it has had this episode: a
+    distance at least `progress` below it is progress. A slot that has gone `patience` replans
+    without progress is stuck, and stays so until its episode ends (`reset`).
+
+    Args:
+        patience: Replans without progress before a slot counts as stuck.
+        progress: The least improvement on the best distance that counts as progress.
+    """
+
+    def __init__(self, patience: int, progress: float):
+        if patience < 1:
+            raise ValueError(f"patience must be >= 1, got {patience}")
+        if progress <= 0:
+            raise ValueError(f"progress must be > 0, got {progress}")
+        self.patience = patience
+        self.progress = progress
+        self.best = torch.zeros(0)  # [B] best goal distance so far
+        self.since = torch.zeros(0, dtype=torch.long)  # [B] replans since the last progress
+        self.stuck = torch.zeros(0, dtype=torch.bool)  # [B]
+
+    def reset(self, slots: int, device: torch.device | str) -> None:
+        """New episodes in all `slots`: none stuck, no best distance yet."""
+        self.best = torch.full((slots,), torch.inf, device=device)
+        self.since = torch.zeros(slots, dtype=torch.long, device=device)
+        self.stuck = torch.zeros(slots, dtype=torch.bool, device=device)
+
+    def update(self, rows: torch.Tensor, distance: torch.Tensor) -> torch.Tensor:
+        """Record the goal `distance [A]` of slots `rows [A]` at a replan; `[A]` whether each is
+        stuck now."""
+        best = self.best[rows]
+        better = distance <= best - self.progress
+        self.best[rows] = torch.where(better, distance, best)
+        since = torch.where(better, torch.zeros_like(self.since[rows]), self.since[rows] + 1)
+        self.since[rows] = since
+        stuck = self.stuck[rows] | (since >= self.patience)
+        self.stuck[rows] = stuck
+        return stuck
