@@ -3,8 +3,8 @@
 # antmaze-medium-navigate recipe (PARAMS: another ant params file) with our expert (ingest,
 # EPISODES episodes, WORKERS processes), segment, then EM training on CUDA with
 # `train.cuda_graph` for MINUTES minutes, in DATA (default /tmp/oposm-ant). The trained model and
-# the training reports are also packed into OUT (default /tmp/oposm-gpu-ant) as ant.tgz.NN, the
-# logs beside them, so that the GPU machine can be let go: validate and deploy then run on any
+# the training reports are also packed into OUT (default /tmp/oposm-gpu-ant) as ant.tgz, the logs
+# beside them, so that the GPU machine can be let go: validate and deploy then run on any
 # CPU, with the same params and `--data` at the unpacked folder.
 #
 # On any Linux machine with a CUDA GPU, from the repository's root, with the project installed
@@ -61,9 +61,9 @@ if [ "$rc" -ne 0 ] && [ "$DEVICE" = cuda ]; then  # e.g. a failed capture: eager
     stage train_eager "$PY" cli.py train "${P[@]}" "${T[@]}" -S train.cuda_graph=false
     rc=$?
 fi
-# One archive of the published model, the training metrics and curves, and segments.json, in
-# 2.5 MB parts that any copy route takes (`cat ant.tgz.* | tar xz` to unpack).
+# One archive of the published model, the training metrics and curves, and segments.json
+# (`tar xzf ant.tgz` in a data folder to unpack).
 (cd "$DATA" && tar czf - models/*/model.safetensors models/*/config.json \
-    reports/train/metrics.json reports/train/plots segments/*/segments.json 2>/dev/null) |
-    split -b 2500k -d - "$OUT/ant.tgz."
+    reports/train/metrics.json reports/train/plots segments/*/segments.json 2>/dev/null) \
+    > "$OUT/ant.tgz"
 exit $rc
