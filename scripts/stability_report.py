@@ -70,7 +70,8 @@ def collect(
             rows.append(kept[recipe, seed])
             continue
         row = {"recipe": recipe, "seed": seed, "run": str(folder)}
-        row |= {"commit": stamped["commit"], "machine": stamped["machine"]}
+        if train is not None or deploy is not None:  # a row not run yet has no commit or machine
+            row |= {"commit": stamped["commit"], "machine": stamped["machine"]}
         if train is not None:
             row |= {
                 "published_step": train["best_step"],

@@ -50,6 +50,8 @@ def test_stability_table_marks_each_run_against_its_recipe(tmp_path):
     assert "| old | 1 | not run yet |" in text
     assert "| new | 4 of 4 | 2 | " in text
     assert first["commit"] == report["commit"] and first["machine"] == report["stamp"]["machine"]
+    never = next(r for r in report["runs"] if (r["recipe"], r["seed"]) == ("old", 1))
+    assert "commit" not in never and "machine" not in never  # not run: dated to no commit
 
 
 def _report_keeping(tmp_path: Path, earlier: dict, args: list[str]) -> Path:
