@@ -10,7 +10,8 @@ Two kinds of module are left out, because they cannot change what a stage comput
 `PLUMBING` (paths, errors, atomic writes, the params' validation, MKL's reproducible mode: the
 environment a lock is made in, rather than one stage's code) and package `__init__.py` files
 that hold only a docstring. The packages in `FOLDERS` are listed as their folder: their modules
-go together (the skill model, the planners, the MCAP format, the importers).
+go together (the skill model, the planners, the MCAP format, the importers), and a folder entry
+covers its data files too (the published numbers' TOML files beside their loader).
 
     uv run python scripts/dvc_deps.py            # rewrite the deps of every dvc.yaml
     uv run python scripts/dvc_deps.py --check    # exit 1, naming each stage, if any is out of date
@@ -56,7 +57,13 @@ PLUMBING = frozenset({
     "pipeline/readback.py",  # checks of files read back: a valid file's values pass unchanged
 })  # fmt: skip
 LOCK_KEYS = ("path", "hash", "md5", "size", "nfiles")  # a lock entry's keys, in DVC's order
-FOLDERS = ("pipeline/model", "pipeline/planning", "pipeline/recording", "pipeline/sources")
+FOLDERS = (
+    "pipeline/model",
+    "pipeline/planning",
+    "pipeline/recording",
+    "pipeline/sources",
+    "pipeline/evaluation/published",  # its loader and data files (the published numbers)
+)
 
 
 def _module_file(name: str) -> Path | None:

@@ -13,7 +13,8 @@ when its Newcombe interval excludes 0 in the claimed direction, does not hold wh
 the other way, and is inconclusive otherwise (`versus`; the mass sweep compares the success pooled
 over the perturbed factors, `off_nominal`). A paper success rate is reproduced unless ours is
 significantly below it: the interval of ours minus the paper's (its rate taken as
-`paper.EPISODES_MAZE2D` episodes; it ran 250-300 per maze) lies below 0 (`reproduces`).
+`pipeline.evaluation.published.EPISODES_MAZE2D` episodes; it ran 250-300 per maze) lies below 0
+(`reproduces`).
 """
 
 from __future__ import annotations
@@ -26,7 +27,13 @@ from typing import Any
 import yaml
 
 from pipeline.errors import UserError
-from pipeline.evaluation import paper
+from pipeline.evaluation.published import (
+    EPISODES_MAZE2D,
+    FIGURE5,
+    FIGURE5_FACTORS,
+    PLAN_SECONDS,
+    TABLE4,
+)
 from pipeline.io import atomic_path, write_json
 from pipeline.reporting.common import (
     Report,
@@ -67,10 +74,10 @@ def _agent_numbers(report: Report) -> dict[str, Any]:
 def _maze_claims(maze: str, numbers: dict[str, Any]) -> list[dict[str, Any]]:
     claims = []
     rg = {a: numbers[a]["random_goal"]["success"] for a in numbers if "random_goal" in numbers[a]}
-    published = paper.TABLE4.get(maze, {})
+    published = TABLE4.get(maze, {})
     if "oposm" in rg and "oposm" in published:
         ours, (theirs, _) = rg["oposm"], published["oposm"]
-        n = paper.EPISODES_MAZE2D
+        n = EPISODES_MAZE2D
         verdict, interval = reproduces(ours, theirs, n)
         claims.append(
             {
@@ -95,7 +102,7 @@ def _maze_claims(maze: str, numbers: dict[str, Any]) -> list[dict[str, Any]]:
     if "oposm" in numbers and "llp" in numbers:
         ours, theirs = numbers["oposm"]["replan_s_p50"], numbers["llp"]["replan_s_p50"]
         if ours and theirs:
-            claimed = paper.PLAN_SECONDS["llp"] / paper.PLAN_SECONDS["oposm"]
+            claimed = PLAN_SECONDS["llp"] / PLAN_SECONDS["oposm"]
             claims.append(
                 {
                     "claim": f"OPOSM finds a plan faster than LLP (§4.2: {claimed:.0f}x), {maze}",
@@ -211,7 +218,7 @@ def _maze_table(results: dict[str, Any]) -> list[str]:
                 t = m["agents"].get(agent, {}).get(task)
                 if t is None:
                     continue
-                published = paper.TABLE4.get(maze, {}).get(agent) if task == "random_goal" else None
+                published = TABLE4.get(maze, {}).get(agent) if task == "random_goal" else None
                 said = f"{pct(published[0])} ± {pct(published[1])}" if published else "–"
                 within = cell(t.get(f"within_{limit}")) + f" ({limit})" if limit else "–"
                 lines.append(
@@ -233,8 +240,8 @@ def _mass_table(results: dict[str, Any]) -> list[str]:
         if agent in table:
             cells = [cell(table[agent].get(f)) for f in factors]
             lines.append(f"| {agent} (ours) | " + " | ".join(cells) + " |")
-    for agent, series in paper.FIGURE5.items():
-        by = dict(zip(paper.FIGURE5_FACTORS, series, strict=True))
+    for agent, series in FIGURE5.items():
+        by = dict(zip(FIGURE5_FACTORS, series, strict=True))
         cells = [pct(by[float(f)]) if float(f) in by else "–" for f in factors]
         lines.append(f"| {agent} (paper, antmaze-large) | " + " | ".join(cells) + " |")
     return lines

@@ -32,6 +32,7 @@ REEXPORTING = {
     "pipeline/recording/__init__.py",
     "pipeline/sources/__init__.py",
     "pipeline/sources/ogbench/__init__.py",  # keeps `from pipeline.sources.ogbench import ...`
+    "pipeline/evaluation/published/__init__.py",  # the loader of the data files beside it
 }
 
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from pipeline.errors import UserError
-from pipeline.evaluation.paper_manipulation import OGBENCH_MANIPULATION
+from pipeline.evaluation.published import OGBENCH_MANIPULATION
 from pipeline.reporting import manipulation
 from pipeline.reporting.common import FAILS, HOLDS, INCONCLUSIVE, rate
 

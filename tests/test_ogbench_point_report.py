@@ -103,9 +103,9 @@ def test_a_run_that_is_not_of_the_ogbench_tasks_is_a_one_line_error(tmp_path):
 
 def test_every_later_method_ran_ogbenchs_number_of_seeds():
     """The verdicts give `above_every` one seed count for OGBench's methods and the later ones:
-    a method with another count needs its own before it joins `paper_after_ogbench`."""
-    from pipeline.evaluation import paper, paper_after_ogbench
+    a method with another count needs its own before it joins after_ogbench.toml."""
+    from pipeline.evaluation import published
 
-    assert set(paper_after_ogbench.SEEDS.values()) == {paper.OGBENCH_SEEDS}
-    quoted = {m for row in paper_after_ogbench.AFTER_OGBENCH.values() for m in row}
-    assert quoted == set(paper_after_ogbench.SEEDS)  # every quoted method states its seeds
+    assert set(published.SEEDS.values()) == {published.OGBENCH_SEEDS}
+    quoted = {m for row in published.AFTER_OGBENCH.values() for m in row}
+    assert quoted == set(published.SEEDS)  # every quoted method states its seeds

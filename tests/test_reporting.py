@@ -7,7 +7,7 @@ from pathlib import Path
 
 import yaml
 
-from pipeline.evaluation import paper
+from pipeline.evaluation import published
 from pipeline.reporting import common
 from pipeline.reporting.common import (
     FAILS,
@@ -59,11 +59,11 @@ def test_rule_3_against_a_published_mean_over_seeds():
     assert verdict == HOLDS and 0.1 < lo < hi < 0.25
     assert above_published(rate(200, 250), 0.80, 0.12, 8)[0] == INCONCLUSIVE
     assert above_published(rate(0, 250), 0.63, 0.06, 8)[0] == FAILS
-    row = paper.OGBENCH["pointmaze-medium-navigate"]
-    assert above_every(rate(249, 250), row, paper.OGBENCH_SEEDS)[:2] == (HOLDS, "QRL")
-    word, method, _ = above_every(rate(150, 250), row, paper.OGBENCH_SEEDS)  # 60 %
+    row = published.OGBENCH["pointmaze-medium-navigate"]
+    assert above_every(rate(249, 250), row, published.OGBENCH_SEEDS)[:2] == (HOLDS, "QRL")
+    word, method, _ = above_every(rate(150, 250), row, published.OGBENCH_SEEDS)  # 60 %
     assert (word, method) == (FAILS, "QRL")  # below QRL's 82 and HIQL's 79: QRL decides
-    assert above_every(rate(210, 250), row, paper.OGBENCH_SEEDS)[:2] == (INCONCLUSIVE, "QRL")
+    assert above_every(rate(210, 250), row, published.OGBENCH_SEEDS)[:2] == (INCONCLUSIVE, "QRL")
 
 
 def test_rule_4_per_seed_values_and_rule_5_pooled_off_the_nominal_factor():

@@ -1,7 +1,7 @@
 """results/antmaze.md + .json: OPOSM on OGBench's ant mazes, beside OGBench's published table and
 the paper's tables 1 and 4 (and figure 5 when a mass sweep ran), on `pipeline.reporting.common`'s
-format, verdict rules and stamp, with the published numbers of `pipeline.evaluation.paper` and
-`pipeline.evaluation.paper_ant`.
+format, verdict rules and stamp, with the published numbers of `pipeline.evaluation.published`
+(the OPOSM paper's and OGBench's).
 
 One data root per maze (`experiments/antmaze/dvc.yaml`: `data/experiments/antmaze/<maze>/`): the
 data (ingest, segment), training, validation (the ladder's skill fidelity and prior-skill open
@@ -30,11 +30,11 @@ Verdicts, each with its rule of `pipeline.reporting.common`:
 - "OPOSM is above every published method" (OGBench's protocol): rule 3, `above_every`, against
   each method's mean over OGBench's 8 seeds.
 - "OPOSM reaches the paper's table 1" (the paper's protocol) and "... table 4" (goals from the
-  training data): rule 2, `reproduces`, the paper's rate taken as `paper.EPISODES_MAZE2D` episodes
+  training data): rule 2, `reproduces`, the paper's rate taken as `EPISODES_MAZE2D` episodes
   (it states no count for the ant; the maze2d count, the lower end). The paper ran D4RL's
   antmaze-*-diverse data and its own goals: a reference, not the same benchmark.
 - "OPOSM reaches goals more often than LLP" (the paper's table 1; our LLP on the same tasks,
-  OGBench's protocol): rule 1, `versus`; the paper's LLP rows (`pipeline.evaluation.paper_ant`)
+  OGBench's protocol): rule 1, `versus`; the paper's LLP rows (`TABLE1_LLP`)
   beside it.
 - Figure 5, "OPOSM keeps more of its success under mass changes than the expert": rule 5,
   `versus` on each agent's success pooled over the perturbed factors (`off_nominal`).
@@ -50,7 +50,17 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.errors import UserError
-from pipeline.evaluation import paper, paper_ant
+from pipeline.evaluation.published import (
+    EPISODES_MAZE2D,
+    FIGURE5,
+    FIGURE5_FACTORS,
+    OGBENCH,
+    OGBENCH_SEEDS,
+    TABLE1,
+    TABLE1_LLP,
+    TABLE3,
+    TABLE4,
+)
 from pipeline.reporting import em_vi
 from pipeline.reporting.common import (
     FAILS,
@@ -79,7 +89,6 @@ OGBENCH_STEPS = 1000  # OGBench's episode limit on its ant mazes
 MASS_RUN = "mass"  # runs named mass<factor> (`deploy.mass_scale`): the figure-5 sweep
 TABLE3_RUN = "table3-"  # runs table3-<method>-seed<seed> (stages em_vi_*): table 3, EM vs VI
 AGENT_ORDER = ("oposm", "llp", "gcbc", "expert")  # the rows' order; other agents after
-OGBENCH = {**paper.OGBENCH, **paper_ant.OGBENCH}  # OGBench's published rows, giant's included
 
 
 def ogbench_name(maze: str) -> str:
@@ -194,31 +203,31 @@ def verdicts(name: str, maze: Mapping[str, Any]) -> list[dict[str, Any]]:
     table = OGBENCH.get(ogbench_name(name))
     if oposm and table:
         ours = oposm["tasks"][OVERALL]["ogbench"]
-        word, method, interval = above_every(ours, table, paper.OGBENCH_SEEDS)
+        word, method, interval = above_every(ours, table, OGBENCH_SEEDS)
         out.append({"claim": f"OPOSM is above every published method on {ogbench_name(name)} "
                     "(OGBench's protocol)", "verdict": word, "interval": interval,
                     "detail": f"OPOSM {percent(ours['rate'], *ours['ci95'])} vs {method} "
                     f"{mean_std(*table[method])} (the method deciding it)"})  # fmt: skip
     for number, what, published, ours in (
-        (1, "its fixed goal", paper.TABLE1, oposm and oposm["tasks"][OVERALL]["paper"]),
-        (4, "random goals", paper.TABLE4,
+        (1, "its fixed goal", TABLE1, oposm and oposm["tasks"][OVERALL]["paper"]),
+        (4, "random goals", TABLE4,
          next((r["paper"] for r in maze["random_goal"] if r["agent"] == "oposm"), None)),
     ):  # fmt: skip
         row = published.get(paper_name(name))
         if not (ours and row):
             continue
         mean, _ = row["oposm"]
-        word, interval = reproduces(ours, mean, paper.EPISODES_MAZE2D)
+        word, interval = reproduces(ours, mean, EPISODES_MAZE2D)
         out.append({"claim": f"OPOSM reaches the paper's table {number} ({paper_name(name)}, "
                     f"{what}; the paper's protocol)", "verdict": word, "interval": interval,
                     "detail": f"OPOSM {percent(ours['rate'], *ours['ci95'])} vs the paper's "
-                    f"{percent(mean)} (as {paper.EPISODES_MAZE2D} episodes)"})  # fmt: skip
+                    f"{percent(mean)} (as {EPISODES_MAZE2D} episodes)"})  # fmt: skip
     llp = _agent(maze, "llp")
     if oposm and llp:
         a, b = oposm["tasks"][OVERALL]["ogbench"], llp["tasks"][OVERALL]["ogbench"]
         word, interval = versus(a, b)
-        their_oposm = paper.TABLE1.get(paper_name(name))
-        their_llp = paper_ant.TABLE1_LLP.get(paper_name(name))
+        their_oposm = TABLE1.get(paper_name(name))
+        their_llp = TABLE1_LLP.get(paper_name(name))
         theirs = (f"; the paper's table 1 ({paper_name(name)}): OPOSM "
                   f"{percent(their_oposm['oposm'][0])} vs LLP {percent(their_llp[0])}"
                   if their_oposm and their_llp else "")  # fmt: skip
@@ -350,8 +359,8 @@ def _mass_rows(sweep: Mapping[str, Mapping[str, Any]]) -> list[str]:
              "|---" * (len(agents) + 3) + "|"]  # fmt: skip
     for f in factors:
         cells = [_cell(sweep[a].get(f)) for a in agents]
-        i = paper.FIGURE5_FACTORS.index(float(f)) if float(f) in paper.FIGURE5_FACTORS else None
-        cells += ["–" if i is None else percent(paper.FIGURE5[k][i], digits=0)
+        i = FIGURE5_FACTORS.index(float(f)) if float(f) in FIGURE5_FACTORS else None
+        cells += ["–" if i is None else percent(FIGURE5[k][i], digits=0)
                   for k in ("oposm", "expert")]  # fmt: skip
         lines.append(f"| x{float(f):g} | " + " | ".join(cells) + " |")
     kept = {a: k for a in agents if (k := kept_share(_as_rates(sweep[a]))) is not None}
@@ -371,11 +380,11 @@ def _published_line(name: str) -> str:
     parts = []
     if table:
         parts.append(
-            f"OGBench's paper ({ogbench_name(name)}, {paper.OGBENCH_SEEDS} seeds, its "
+            f"OGBench's paper ({ogbench_name(name)}, {OGBENCH_SEEDS} seeds, its "
             "protocol): " + ", ".join(f"{m} {mean_std(*v)}" for m, v in table.items())
         )
     own = [f"table {n} ({what}) {mean_std(*t[paper_name(name)]['oposm'], digits=1)}"
-           for n, what, t in ((1, "fixed goal", paper.TABLE1), (4, "random goals", paper.TABLE4))
+           for n, what, t in ((1, "fixed goal", TABLE1), (4, "random goals", TABLE4))
            if paper_name(name) in t]  # fmt: skip
     if own:
         parts.append(f"the paper (D4RL {paper_name(name)}, its own goals and protocol): "
@@ -389,7 +398,7 @@ _WORDS = {HOLDS: "holds", FAILS: "does not hold", INCONCLUSIVE: "inconclusive"}
 def _table3_lines(name: str, table3: Mapping[str, Any]) -> list[str]:
     runs = table3["runs"]
     seeds = sorted({seed for by_seed in runs.values() for seed in by_seed}, key=int)
-    published = paper_ant.TABLE3.get(paper_name(name))
+    published = TABLE3.get(paper_name(name))
     theirs = (f" The paper's table 3 ({paper_name(name)}, its goals and protocol): EM "
               f"{mean_std(*published['em'], digits=1)}, naive VI "
               f"{mean_std(*published['vi'], digits=1)}." if published else "")  # fmt: skip
@@ -615,12 +624,12 @@ def page(
             paper_name(m): {
                 **{
                     f"table{n}": list(t[paper_name(m)]["oposm"])
-                    for n, t in ((1, paper.TABLE1), (4, paper.TABLE4))
+                    for n, t in ((1, TABLE1), (4, TABLE4))
                     if paper_name(m) in t
                 },
                 **(
-                    {"table3": {k: list(v) for k, v in paper_ant.TABLE3[paper_name(m)].items()}}
-                    if paper_name(m) in paper_ant.TABLE3
+                    {"table3": {k: list(v) for k, v in TABLE3[paper_name(m)].items()}}
+                    if paper_name(m) in TABLE3
                     else {}
                 ),
             }

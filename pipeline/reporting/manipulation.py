@@ -1,7 +1,7 @@
 """results/manipulation.md + .json: OPOSM, LLP, GCBC and OGBench's scripted oracle on OGBench's
 manipulation datasets, beside OGBench's published table and the paper's FrankaKitchen rows, on
 `pipeline.reporting.common`'s format, verdict rules and stamp, with the published numbers of
-`pipeline.evaluation.paper_manipulation`.
+`pipeline.evaluation.published` (`OGBENCH_MANIPULATION`, `KITCHEN_TABLE4`).
 
 One data root per dataset (`experiments/manipulation/dvc.yaml`:
 `data/experiments/manipulation/<dataset>/`): the data (ingest, segment; made here by OGBench's
@@ -33,8 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.errors import UserError
-from pipeline.evaluation import paper
-from pipeline.evaluation.paper_manipulation import KITCHEN_TABLE4, OGBENCH_MANIPULATION
+from pipeline.evaluation.published import KITCHEN_TABLE4, OGBENCH_MANIPULATION, OGBENCH_SEEDS
 from pipeline.reporting.common import (
     FAILS,
     HOLDS,
@@ -117,7 +116,7 @@ def verdicts(name: str, data: Mapping[str, Any]) -> list[dict[str, Any]]:
     ours = oposm["tasks"][OVERALL]
     table = OGBENCH_MANIPULATION.get(name)
     if table:
-        word, method, interval = above_every(ours, table, paper.OGBENCH_SEEDS)
+        word, method, interval = above_every(ours, table, OGBENCH_SEEDS)
         out.append({"claim": f"OPOSM is above every published method on {name} (OGBench's "
                     "protocol)", "verdict": word, "interval": interval,
                     "detail": f"OPOSM {percent(ours['rate'], *ours['ci95'])} vs {method} "
@@ -156,7 +155,7 @@ def alternative_verdicts(
     out = []
     table = OGBENCH_MANIPULATION.get(name)
     if table:
-        word, method, interval = above_every(ours, table, paper.OGBENCH_SEEDS)
+        word, method, interval = above_every(ours, table, OGBENCH_SEEDS)
         out.append({"claim": f"{what} is above every published method on {name} (OGBench's "
                     "protocol)", "verdict": word, "interval": interval,
                     "detail": f"{short} {percent(ours['rate'], *ours['ci95'])} vs {method} "
@@ -259,7 +258,7 @@ def _published_line(name: str) -> str:
     table = OGBENCH_MANIPULATION.get(name)
     if not table:
         return "No published number quoted."
-    return (f"Published (OGBench's paper, {name}, {paper.OGBENCH_SEEDS} seeds, 1000 play "
+    return (f"Published (OGBench's paper, {name}, {OGBENCH_SEEDS} seeds, 1000 play "
             "episodes of 1001 steps): " + ", ".join(f"{m} {mean_std(*v)}" for m, v in
                                                     table.items()) + ".")  # fmt: skip
 

@@ -1,7 +1,7 @@
 """results/ogbench-point.md + .json: OPOSM under OGBench's protocol on its point mazes, beside
 OGBench's published table (issue 18), on `pipeline.reporting.common`'s format, verdict rules and
-stamp, with the published numbers of `pipeline.evaluation.paper.OGBENCH` and of the methods that
-came after it (`pipeline.evaluation.paper_after_ogbench`).
+stamp, with the published numbers of `pipeline.evaluation.published`: OGBench's (`OGBENCH`) and
+the methods that came after it (`AFTER_OGBENCH`).
 
 A row is one `oposm deploy` run (its `reports/deploy/report.json`) on OGBench's five evaluation
 tasks: its agent (oposm, or the run's only agent, e.g. gcbc) per task and pooled. A row's dataset
@@ -29,7 +29,7 @@ from typing import Any
 import yaml
 
 from pipeline.errors import UserError
-from pipeline.evaluation import paper, paper_after_ogbench
+from pipeline.evaluation.published import AFTER_OGBENCH, OGBENCH, OGBENCH_METHODS, OGBENCH_SEEDS
 from pipeline.io import atomic_path, write_json
 from pipeline.reporting.common import (
     above_every,
@@ -57,16 +57,16 @@ def ogbench_name(dataset: str) -> str:
 
 def published(dataset: str) -> dict[str, tuple[float, float]] | None:
     """OGBench's row for a dataset (method -> (mean, std), fractions), None where not quoted."""
-    return paper.OGBENCH.get(ogbench_name(dataset))
+    return OGBENCH.get(ogbench_name(dataset))
 
 
 def published_after(dataset: str) -> dict[str, tuple[float, float]]:
     """The later methods' numbers for a dataset (method -> (mean, std)), {} where none."""
-    return paper_after_ogbench.AFTER_OGBENCH.get(ogbench_name(dataset), {})
+    return AFTER_OGBENCH.get(ogbench_name(dataset), {})
 
 
 def every_published(dataset: str) -> dict[str, tuple[float, float]] | None:
-    """OGBench's row and the later methods' (each over `paper.OGBENCH_SEEDS` seeds, as
+    """OGBench's row and the later methods' (each over `OGBENCH_SEEDS` seeds, as
     `above_every` takes one count: tests/test_ogbench_point_report.py holds them to it), None
     where neither is quoted."""
     row = {**(published(dataset) or {}), **published_after(dataset)}
@@ -114,7 +114,7 @@ def _cell(row: dict[str, Any]) -> str:
 
 
 def _published_rows(datasets: list[str]) -> list[str]:
-    methods = paper.OGBENCH_METHODS
+    methods = OGBENCH_METHODS
     lines = ["| dataset | " + " | ".join(methods) + " | best published |",
              "|---|" + "---|" * (len(methods) + 1)]  # fmt: skip
     for dataset in datasets:
@@ -157,7 +157,7 @@ def _verdicts(runs: list[dict[str, Any]], datasets: list[str]) -> list[str]:
             lines.append(f"- {dataset}: {top['label']} {_cell(overall)}; no published number "
                          "is quoted here to compare with.")  # fmt: skip
             continue
-        word, method, interval = above_every(rate_of(overall), row, paper.OGBENCH_SEEDS)
+        word, method, interval = above_every(rate_of(overall), row, OGBENCH_SEEDS)
         lines.append(f"- {dataset}: **{word}**: {top['label']} {_cell(overall)} vs {method} "
                      f"{mean_std(*row[method])} (the method deciding it), difference "
                      f"{points(interval, 0)} points.")  # fmt: skip
@@ -168,7 +168,7 @@ def _verdicts(runs: list[dict[str, Any]], datasets: list[str]) -> list[str]:
     for r in checks:
         mean, std = published(r["dataset"])["GCBC"]
         overall = r["tasks"][OVERALL]
-        _, interval = above_published(rate_of(overall), mean, std, paper.OGBENCH_SEEDS)
+        _, interval = above_published(rate_of(overall), mean, std, OGBENCH_SEEDS)
         lines.append(f"- {r['dataset']}: ours {_cell(overall)}, OGBench's {mean_std(mean, std)}; "
                      f"difference {points(interval, 0)} points.")  # fmt: skip
     return lines
