@@ -162,6 +162,7 @@ TINY = [
     "validate.record_starts=1",
     "deploy.tasks=[kitchen]",
     "deploy.agents=[oposm,llp,gcbc]",
+    "deploy.subgoals.enabled=false",  # the subgoal graph is a maze's (params-kitchen-mixed.yaml)
     "deploy.episodes=1",
     "deploy.planner.horizon=2",
     "deploy.planner.candidates=8",
