@@ -46,9 +46,13 @@ def test_shared_std_gives_one_std_per_component():
 
 def test_readout_is_the_most_probable_components_mean_and_the_planner_chains_it():
     model = _model(3)
-    with torch.no_grad():  # logits that vary across inputs more than at initialization
-        model.tawm.std[2].weight.normal_(0.0, 3.0)
-    s0, z = torch.randn(64, SD), torch.randn(64, Z)
+    generator = torch.Generator().manual_seed(1)
+    s0, z = torch.randn(64, SD, generator=generator), torch.randn(64, Z, generator=generator)
+    with torch.no_grad():  # logits that vary across inputs more than at initialization, each
+        last = model.tawm.std[2]  # centred over the rows, so that no component wins every row
+        last.weight.normal_(0.0, 3.0, generator=generator)
+        last.bias.zero_()
+        last.bias[-3:] = -model.tawm(torch.cat([s0, z], -1))[2].mean(dim=0)
     means, stds, logits = model.tawm(torch.cat([s0, z], -1))
     best = logits.argmax(-1)
     assert len(best.unique()) > 1  # the rows pick different components
