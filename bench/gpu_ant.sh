@@ -1,11 +1,11 @@
 #!/usr/bin/env bash
-# The ant chain in one GPU run (< 10 min on one H100 or H200 with 16 CPU cores): OGBench's
+# The ant chain in one GPU run (about 10 min on one H100 or H200 with 16 CPU cores): OGBench's
 # antmaze-medium-navigate recipe (PARAMS: another ant params file) with our expert (ingest,
 # EPISODES episodes, WORKERS processes), segment, then EM training on CUDA with
 # `train.cuda_graph` for MINUTES minutes, in DATA (default /tmp/oposm-ant). The trained model and
 # the training reports are also packed into OUT (default /tmp/oposm-gpu-ant) as ant.tgz, the logs
-# beside them, so that the GPU machine can be let go: validate and deploy then run on any
-# CPU, with the same params and `--data` at the unpacked folder.
+# beside them: validate and deploy then run on any CPU, with the same params and `--data` at the
+# unpacked folder.
 #
 # On any Linux machine with a CUDA GPU, from the repository's root, with the project installed
 # (`uv sync`; PYTHON names its interpreter):

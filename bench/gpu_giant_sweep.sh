@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# The planner sweep on pointmaze-giant-stitch in one GPU run (< 10 min on one H100 or H200 with
-# 16 CPU cores): OGBench's stitch recipe at OGBench's size (5000
+# The planner sweep on pointmaze-giant-stitch in one GPU run (about 10 min on one H100 or H200
+# with 16 CPU cores): OGBench's stitch recipe at OGBench's size (5000
 # episodes of 201 steps, the `giant-stitch5k` root of experiments/ogbench/params.yaml), segment,
 # EM on CUDA (the variant's 5000 steps), then one deploy per planner setting, all at once (one
 # core each, plans on the GPU), on OGBench's five tasks with 2000-step episodes: success within
