@@ -701,10 +701,23 @@ class DeployParams(_Section):
     threads: int | None = Field(
         1, ge=1, description="Torch CPU threads; null: torch's default (all cores)."
     )
+    workers: int | Literal["auto"] = Field(
+        "auto",
+        description="Processes running the (agent, task) jobs side by side, each on `threads` "
+        "torch threads; the episodes do not depend on it. auto: one per job up to the cores "
+        "this process may use (1 on CUDA).",
+    )
     seed: int = Field(0, description="Seed of tasks, CEM noise and action noise.")
     device: Literal["auto", "cpu", "cuda"] = Field(
         "auto", description="auto: CUDA when available, else CPU (the simulator runs on CPU)."
     )
+
+    @field_validator("workers")
+    @classmethod
+    def _positive_workers(cls, v: int | str) -> int | str:
+        if isinstance(v, int) and v < 1:
+            raise ValueError("must be >= 1 or auto")
+        return v
 
     @model_validator(mode="after")
     def _agents_once(self) -> DeployParams:

@@ -230,6 +230,24 @@ def test_deploy_writes_a_valid_report_and_prints_a_summary(project):
     assert "plan_s_p50" not in headline["oposm"]
 
 
+def test_episodes_are_the_same_bytes_on_one_process_or_several(project, tmp_path):
+    """deploy.workers only spreads the (agent, task) jobs over processes: one process and three
+    (spawned, each building its own agents) write the reports the fixture's run wrote, byte for
+    byte (the recordings are not compared: Rerun stamps each with its own id and time)."""
+    root, _, _ = project
+    written = ["reports/deploy/episodes.json", "reports/deploy/report.json"]  # DVC's outs
+    for workers in (1, 3):
+        data = tmp_path / f"data-{workers}"
+        shutil.copytree(root / "data", data, ignore=shutil.ignore_patterns("recordings"))
+        args = ["deploy", "--params", str(root / "params.yaml"), "--data", str(data),
+                "-S", f"deploy.workers={workers}"]  # fmt: skip
+        result = runner.invoke(app, args)
+        assert result.exit_code == 0, result.output
+        for name in written:  # the report names the data folder's models and recordings
+            ours = (data / name).read_bytes().replace(bytes(data), bytes(root / "data"))
+            assert ours == (root / "data" / name).read_bytes(), name
+
+
 def test_recordings_load_back_with_rerun(project):
     root, _, _ = project
     files = sorted((root / "data/recordings/deploy").glob("*.rrd"))

@@ -364,6 +364,17 @@ RERUN_PENDING |= {
 for _path in ("pipeline/reporting/antmaze.py", "pipeline/reporting/manipulation.py"):
     RERUN_PENDING[_path] += "; the published numbers from pipeline/evaluation/published"
 
+# Deploy's agents built in their own module, and its (agent, task) jobs on `deploy.workers`
+# processes side by side (auto: one per job up to the cores): the same episodes, byte for byte
+# (tests/test_deploy.py), in less wall-clock time.
+_WORKERS = "the (agent, task) jobs on deploy.workers processes: the same reports, byte for byte"
+RERUN_PENDING |= {
+    "stages/deploy_agents.py": "(new) the agent builders, moved out of stages/deploy.py unchanged",
+    "stages/deploy_jobs.py": f"(new) {_WORKERS}",
+    "deploy.workers": f"(new) {_WORKERS}",
+}
+RERUN_PENDING["stages/deploy.py"] += f"; {_WORKERS}"
+
 
 def _covered(problem: str) -> str | None:
     """The RERUN_PENDING file a stale-lock `problem` is about, or None."""
