@@ -15,8 +15,6 @@
 # setting: reports/deploy/episodes.json and metrics; the logs as logs.tgz.
 # stages/deploy.py imports rerun-sdk (a 166 MB wheel, not among gpu_wheels.sh's) at module level
 # although these deploys record nothing (`deploy.record_episodes=0`): where it is not installed,
-# STUB names a folder put first on PYTHONPATH, e.g. one holding a stand-in `rerun` package whose
-# every attribute is an inert object (not part of the project).
 # DEPLOY_TIMEOUT (seconds, `timeout`'s 0 = none) stops the deploys so that the reports are still packed.
 # Dry run without a GPU: DEVICE=cpu EPISODES_DATA=40 STEPS=20 EPISODES=1 MAX_STEPS=60 \
 #   SETTINGS=2 OUT=/tmp/sweep-dry bash bench/gpu_giant_sweep.sh
@@ -34,7 +32,6 @@ WORKERS=${WORKERS:-15}
 LOGS="$DATA/logs"  # every log, packed as $OUT/logs.tgz: one file, however many deploys
 mkdir -p "$OUT" "$LOGS"
 source bench/gpu_env.sh
-[ -n "${STUB:-}" ] && export PYTHONPATH="$STUB:$PYTHONPATH"
 P=(-p params-ogbench-pointmaze-giant.yaml --data "$DATA"
    -S ingest.name=ogbench-pointmaze-giant-stitch -S ingest.ogbench.dataset_type=stitch
    -S "ingest.episodes=$EPISODES_DATA" -S ingest.episode_steps=201)

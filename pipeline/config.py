@@ -508,6 +508,14 @@ class PlannerParams(_Section):
         description="Goal units (m) added to a plan whose predicted states include a fallen "
         "agent (the ant: torso down or upside down; others cannot fall). 0: the paper's cost.",
     )
+    uncertainty_weight: float = Field(
+        0.0,
+        ge=0,
+        description="Weight of the plan's uncertainty added to its cost: the TAWM's predicted "
+        "std of each skill's outcome (normalized state units, the mean over the state's dims), "
+        "summed over the plan's skills, so plans through outcomes the model is unsure of cost "
+        "more (MOPO's penalty, with the TAWM's own std). 0: the paper's cost.",
+    )
     stop_cost: float | None = Field(
         None, gt=0, description="Stop a plan once its objective is below this; null: never."
     )

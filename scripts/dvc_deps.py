@@ -171,16 +171,21 @@ def deps_blocks(text: str, stages: dict) -> list[DepsBlock]:
         if not key or stage is None:
             continue
         item = re.compile(rf"({key[1]}|{key[1]}  )- ")
+        comment = re.compile(rf"({key[1]}|{key[1]}  )#")  # a comment inside the list
         end = i + 1
-        while end < len(lines) and item.match(lines[end]):
+        while end < len(lines) and (item.match(lines[end]) or comment.match(lines[end])):
             end += 1
-        indent = item.match(lines[i + 1])[1] if end > i + 1 else key[1]
+        first = next((line for line in lines[i + 1 : end] if item.match(line)), None)
+        indent = item.match(first)[1] if first else key[1]
         spec = stages[stage].get("do", stages[stage])
         blocks.append(DepsBlock(stage, spec["cmd"], i + 1, end, indent))
     return blocks
 
 
 def _entry(line: str) -> str:
+    """A deps line's path ("" for a comment line)."""
+    if line.lstrip().startswith("#"):
+        return ""
     return line.split("- ", 1)[1].split(" #")[0].strip()
 
 

@@ -89,6 +89,28 @@ def test_a_missing_or_extra_code_entry_is_rewritten_and_data_entries_stay():
     assert yaml.safe_load(fixed)["stages"]["train"]["deps"][0] == "data/segments/${ingest.name}"
 
 
+def test_a_comment_inside_a_deps_list_keeps_the_list_whole():
+    """Data entries after a comment line stay in the stage's list, the code entries come after
+    them all, once each, and the comment stays where it was."""
+    text = """stages:
+  report:
+    cmd: oposm segment
+    deps:
+      - data/a
+      - stages/segment.py
+      # more roots (a comment inside the list)
+      - data/b
+      - stages/segment.py
+    outs:
+      - out
+"""
+    fixed, changed = deps.rewritten(text)
+    listed = yaml.safe_load(fixed)["stages"]["report"]["deps"]
+    assert changed == ["report"] and listed[:2] == ["data/a", "data/b"]
+    assert listed[2:] == deps.code_deps("oposm segment")
+    assert "      # more roots (a comment inside the list)\n      - data/b" in fixed
+
+
 def _run(repo: Path, *args: str) -> str:
     env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
     env.pop("DVC_STAGE", None)

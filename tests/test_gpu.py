@@ -245,7 +245,7 @@ def check_triton_planner_matches_torch(device: str) -> None:
     nets = PlannerNets(model, torch.bfloat16)
     s0_n = model.norm_states(s0)
     prior0 = nets.prior(s0_n)
-    states, skills = planner._rollout(eps, nets, s0, s0_n, prior0)
+    states, skills, _ = planner._rollout(eps, nets, s0, s0_n, prior0)
     bf16, fp32 = TritonNets(model, torch.bfloat16), TritonNets(model)
     got = bf16.rollout_cost(eps, s0, s0_n, prior0, bf16.goal_inputs(goals, (0, 1)), 0)
     torch.testing.assert_close(got[0], states, rtol=5e-2, atol=5e-2)

@@ -198,6 +198,33 @@ def test_the_prior_penalty_keeps_plans_near_the_prior_mean(model):
         assert torch.allclose(plan.objective, task + penalty, atol=1e-4)
 
 
+def test_the_uncertainty_penalty_is_the_tawm_std_summed_over_the_plan(model):
+    """`uncertainty_weight` adds w x the TAWM's std of each skill's outcome (the model's own
+    `tawm_outcome`, normalized units, mean over dims), summed over the plan's skills."""
+    s0, goals = torch.randn(3, 4), torch.randn(3, 2)
+    keys = problem_keys(range(3), "cpu")
+    plans = {}
+    for weight in (0.0, 0.7):
+        config = planner_config(
+            horizon=3, candidates=16, elites=4, iterations=3, prior_weight=0.5,
+            uncertainty_weight=weight,
+        )  # fmt: skip
+        plans[weight] = SkillPlanner(model, config).plan(s0, GoalCost(goals), keys)
+    plan = plans[0.7]
+    states_n = model.norm_states(plan.states)
+    stds = model.tawm_outcome(states_n[:, :-1], plan.z)[1]  # each skill's outcome, [B, L, sd]
+    uncertainty = stds.mean(dim=-1).sum(dim=-1)
+    task = GoalCost(goals)(plan.states[:, None])[:, 0]
+    prior = 0.5 * plan.eps.pow(2).mean(dim=(1, 2))
+    torch.testing.assert_close(plan.objective, task + prior + 0.7 * uncertainty, atol=1e-4, rtol=0)
+    assert uncertainty.min() > 0
+    # Without the weight the objective has no uncertainty term.
+    plain = plans[0.0]
+    task = GoalCost(goals)(plain.states[:, None])[:, 0]
+    torch.testing.assert_close(plain.objective, task + 0.5 * plain.eps.pow(2).mean(dim=(1, 2)),
+                               atol=1e-5, rtol=0)  # fmt: skip
+
+
 def test_mpc_warm_starts_from_the_shifted_plan_and_acts_with_the_policy(model):
     planner = SkillPlanner(
         model, planner_config(horizon=3, candidates=16, elites=4, iterations=3, prior_weight=0.0)

@@ -49,7 +49,7 @@ def test_kernel_equals_the_torch_rollout_and_goal_cost(sd, z, hidden, dims, pena
     nets = PlannerNets(model)
     s0_n = model.norm_states(s0)
     prior0 = nets.prior(s0_n)
-    states, skills = planner._rollout(eps, nets, s0, s0_n, prior0)
+    states, skills, _ = planner._rollout(eps, nets, s0, s0_n, prior0)
     cost = GoalCost(goals, dims, skill_penalty=penalty)(states)
     fused = TritonNets(model)
     got = fused.rollout_cost(eps, s0, s0_n, prior0, fused.goal_inputs(goals, dims), penalty)

@@ -3,7 +3,8 @@
 fewer, larger and in-place operations, because the planner's rollout is the hot path.
 
 - the prior's mean and std heads share one matrix product for their hidden layers (`[h, 2h]`);
-- the TAWM's std network is skipped (the planner chains means); of a mixture TAWM
+- the TAWM's std network is skipped (the planner chains means) unless the plan's cost asks for
+  the model's uncertainty (`tawm_mean_std`, one Gaussian only); of a mixture TAWM
   (`train.tawm_components`) only its logits are computed, to pick the most probable component;
 - the TAWM's input `[s, z]` is never concatenated: its first layer is two accumulated products;
 - every ReLU runs in place on the product it follows (no extra allocation);
@@ -64,6 +65,10 @@ class PlannerNets:
                 (logits.weight[-self.components :].t().to(dtype),
                  logits.bias[-self.components :].to(dtype)),
             ]  # fmt: skip
+        if self.components == 1:  # the std network, for `tawm_mean_std`
+            std_net = tawm.head.std
+            self.tawm_std = [_weights(std_net[0], dtype), _weights(std_net[2], dtype)]
+            self.tawm_min_std = tawm.head.min_std
         self.hidden = head.mean[0].out_features
         self._check(prior, tawm)
 
@@ -81,11 +86,26 @@ class PlannerNets:
         std_in = torch.addmm(self.prior_std_out[1], both[:, self.hidden :], self.prior_std_out[0])
         return mean.float(), F.softplus(std_in.float()) + self.min_std
 
-    def tawm_mean(self, s: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-        """Normalized `s [N, sd]`, skill `z [N, z]` -> the TAWM mean of s_T `[N, sd]` (float32)."""
+    def _tawm_trunk(self, s: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         s, z = s.to(self.dtype), z.to(self.dtype)
         h = torch.addmm(torch.addmm(self.tawm_in_b, s, self.tawm_in_s), z, self.tawm_in_z).relu_()
-        h = _relu_layer(h, self.tawm_trunk2)
+        return _relu_layer(h, self.tawm_trunk2)
+
+    def tawm_mean_std(self, s: torch.Tensor, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Normalized `s [N, sd]`, skill `z [N, z]` -> the TAWM's mean of s_T `[N, sd]` and its
+        std `[N, sd]` (or `[N, 1]`, a shared std), float32; a one-Gaussian TAWM only."""
+        if self.components > 1:
+            raise ValueError("the TAWM's std in a plan needs train.tawm_components 1")
+        h = self._tawm_trunk(s, z)
+        mean = torch.addmm(self.tawm_head[1][1], _relu_layer(h, self.tawm_head[0]),
+                           self.tawm_head[1][0]).float()  # fmt: skip
+        std_in = torch.addmm(self.tawm_std[1][1], _relu_layer(h, self.tawm_std[0]),
+                             self.tawm_std[1][0]).float()  # fmt: skip
+        return mean, F.softplus(std_in) + self.tawm_min_std
+
+    def tawm_mean(self, s: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """Normalized `s [N, sd]`, skill `z [N, z]` -> the TAWM mean of s_T `[N, sd]` (float32)."""
+        h = self._tawm_trunk(s, z)
         mean = torch.addmm(self.tawm_head[1][1], _relu_layer(h, self.tawm_head[0]),
                            self.tawm_head[1][0]).float()  # fmt: skip
         if self.components == 1:

@@ -34,6 +34,7 @@ def planner_config(p: PlannerParams) -> PlannerConfig:
         prior_weight=p.prior_weight,
         skill_penalty=p.skill_penalty,
         fall_penalty=p.fall_penalty,
+        uncertainty_weight=p.uncertainty_weight,
         warm_start=p.warm_start,
         compile=p.compile,
         dtype=p.dtype,

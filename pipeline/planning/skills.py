@@ -58,6 +58,9 @@ class PlannerConfig:
             predicted state (0: the paper's cost; `GoalCost`).
         fall_penalty: Goal units the MPC agent's `GoalCost` adds to a plan predicted to fall
             (agents that can fall: the ant; 0: the paper's cost).
+        uncertainty_weight: Weight of the plan's uncertainty in the objective: the TAWM's
+            predicted std of each skill's outcome (normalized units, mean over the state's
+            dims), summed over the skills (0: the paper's cost).
         warm_start: Start each replan from the previous plan shifted by one skill (zeros appended)
             instead of from zeros.
         compile: Run CEM iterations through `torch.compile` (and, on CUDA, replay each plan as a
@@ -75,6 +78,7 @@ class PlannerConfig:
     prior_weight: float
     skill_penalty: float
     fall_penalty: float
+    uncertainty_weight: float
     warm_start: bool
     compile: bool
     dtype: str
@@ -83,6 +87,8 @@ class PlannerConfig:
     def __post_init__(self) -> None:
         if self.kernel not in ("torch", "triton"):
             raise ValueError(f"kernel must be 'torch' or 'triton', got {self.kernel!r}")
+        if self.uncertainty_weight < 0:
+            raise ValueError(f"uncertainty_weight must be >= 0, got {self.uncertainty_weight}")
 
 
 @dataclass
@@ -188,6 +194,8 @@ class SkillPlanner:
         """Whether the Triton kernel computes this plan's rollout and cost (`config.kernel`)."""
         if self.config.kernel != "triton" or self.model.config.tawm_components > 1:
             return False
+        if self.config.uncertainty_weight:  # the kernel chains means only
+            return False
         return isinstance(cost, GoalCost) and not cost.fall_penalty and cost.scale is None
 
     def _step(
@@ -220,10 +228,12 @@ class SkillPlanner:
                 eps, s0, s0_n, prior0, nets.goal, nets.skill_penalty
             )
         else:
-            states, z = self._rollout(eps, nets, s0, s0_n, prior0)
+            states, z, uncertainty = self._rollout(eps, nets, s0, s0_n, prior0)
             task = cost(states)
         weight = self.config.prior_weight
         objective = task + weight * eps.pow(2).mean(dim=(-2, -1)) if weight else task
+        if self.config.uncertainty_weight:
+            objective = objective + self.config.uncertainty_weight * uncertainty
         return objective, (states, z, task)
 
     def _rollout(
@@ -233,16 +243,20 @@ class SkillPlanner:
         s0: torch.Tensor,
         s0_n: torch.Tensor,
         prior0: tuple[torch.Tensor, torch.Tensor],
-    ) -> tuple[torch.Tensor, torch.Tensor]:
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """Chain prior and TAWM mean over `eps [B, K, L, z]` from `s0 [B, sd]` (raw; `s0_n`
         normalized, `prior0` its prior mean and std `[B, z]`): raw states `[B, K, L + 1, sd]`
-        (s_0 first) and skills `[B, K, L, z]`. The same chain as `rollout_skills`."""
+        (s_0 first), skills `[B, K, L, z]` and, with `uncertainty_weight`, the plan's
+        uncertainty `[B, K]` (the TAWM's std of each outcome, mean over dims, summed over the
+        skills; else None). The same chain as `rollout_skills`."""
         m = self.model
         b, k, n_skills, z_dim = eps.shape
         sd = s0.shape[-1]
         flat = eps.reshape(b * k, n_skills, z_dim)  # rows: one matrix product per network
         s = s0_n[:, None].expand(b, k, sd).reshape(b * k, sd)
         skills, states = [], []
+        weighted = self.config.uncertainty_weight > 0
+        uncertainty = torch.zeros(b * k, device=s0.device) if weighted else None
         for i in range(n_skills):
             if i:
                 mu, sigma = nets.prior(s)
@@ -250,13 +264,18 @@ class SkillPlanner:
             else:
                 z0 = torch.addcmul(prior0[0][:, None], prior0[1][:, None], eps[:, :, 0])
                 skills.append(z0.reshape(b * k, z_dim))
-            s = nets.tawm_mean(s, skills[-1])
+            if uncertainty is None:
+                s = nets.tawm_mean(s, skills[-1])
+            else:
+                s, std = nets.tawm_mean_std(s, skills[-1])
+                uncertainty += std.mean(dim=-1)
             states.append(s)
         predicted = torch.stack(states, dim=1) * m.state_std + m.state_mean  # [BK, L, sd]
         start = s0[:, None, None].expand(b, k, 1, sd)
         return (
             torch.cat([start, predicted.view(b, k, n_skills, sd)], dim=2),
             torch.stack(skills, dim=1).view(b, k, n_skills, z_dim),
+            None if uncertainty is None else uncertainty.view(b, k),
         )
 
     def _graphed(self, batch: int) -> _GraphedPlan:
