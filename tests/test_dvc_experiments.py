@@ -377,7 +377,9 @@ RERUN_PENDING["stages/deploy.py"] += f"; {_WORKERS}"
 
 # The plan's uncertainty in its cost (`deploy.planner.uncertainty_weight`, 0 by default: the
 # paper's cost, the same plans; tests/test_planning.py).
-_UNCERTAINTY = "deploy.planner.uncertainty_weight (0 by default: the same plans; the report names it)"
+_UNCERTAINTY = (
+    "deploy.planner.uncertainty_weight (0 by default: the same plans; the report names it)"
+)
 RERUN_PENDING["pipeline/planning"] += f"; {_UNCERTAINTY}"
 RERUN_PENDING["deploy.planner.uncertainty_weight"] = f"(new) {_UNCERTAINTY}"
 
