@@ -111,7 +111,7 @@ def format_summary(report: dict[str, Any]) -> str:
     ]
     for agent in report["agents"]:
         r = report["by_agent"][agent]
-        lines.append(f"  {agent} ({r['wall_s']:.0f} s)")
+        lines.append(f"  {agent} ({r['wall_s']:.0f} s of episodes)")  # its tasks' times added
         unit = report.get("distance_unit")
         lines += [
             _task_line(task, r[task], report["success_radius"], unit) for task in report["tasks"]
