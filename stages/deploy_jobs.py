@@ -114,12 +114,18 @@ def run_jobs(
     if workers <= 1:
         return [local.run(job, progress) for job in jobs]
     context = multiprocessing.get_context("spawn")
-    with context.Pool(workers, _start_worker, (params, paths)) as pool:
+    pool = context.Pool(workers, _start_worker, (params, paths))
+    try:
         pending = [
             pool.apply_async(_worker_job, (job, progress, position))
             for position, job in enumerate(jobs)
         ]
-        return [p.get() for p in pending]
+        done = [p.get() for p in pending]
+        pool.close()  # the workers exit on their own, their resources released
+        pool.join()
+        return done
+    finally:
+        pool.terminate()  # on an error or an interrupt: stop the others now
 
 
 _WORKER: dict = {}  # a worker process's params, paths, segments, spec and Runner
