@@ -91,3 +91,8 @@ def test_the_agent_plans_from_the_slots_exact_states_and_refuses_what_it_cannot_
     compiled = planner_config(PlannerParams(horizon=2, candidates=4, elites=2, compile=True))
     with pytest.raises(UserError, match="compile=false"):
         SimulatorPlanner(model, compiled, SimulatedRollout(model, spec, spec.model, 4, STEPS))
+    uncertain = planner_config(
+        PlannerParams(horizon=2, candidates=4, elites=2, uncertainty_weight=1.0)
+    )
+    with pytest.raises(UserError, match="uncertainty_weight=0"):
+        SimulatorPlanner(model, uncertain, SimulatedRollout(model, spec, spec.model, 4, STEPS))

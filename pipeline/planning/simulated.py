@@ -90,6 +90,11 @@ class SimulatorPlanner(SkillPlanner):
                 "the oposm_sim agent plans in the simulator: set deploy.planner.compile=false "
                 "and deploy.planner.kernel=torch"
             )
+        if config.uncertainty_weight:
+            raise UserError(
+                "the oposm_sim agent scores plans in the simulator, which has no model "
+                "uncertainty: set deploy.planner.uncertainty_weight=0"
+            )
         if config.cem.candidates != len(rollout.sim):
             raise ValueError("one scratch simulator per CEM candidate")
         super().__init__(model, config)
@@ -97,9 +102,10 @@ class SimulatorPlanner(SkillPlanner):
         self.starts: np.ndarray | None = None
 
     def _rollout(self, eps, nets: PlannerNets, s0, s0_n, prior0):
+        """The states the simulator reaches and the skills it ran; no uncertainty term."""
         if self.starts is None or len(self.starts) != len(s0):
             raise RuntimeError("set SimulatorPlanner.starts to the problems' physics states")
-        return self.rollout(eps, self.starts)
+        return (*self.rollout(eps, self.starts), None)
 
 
 class SimulatedSkillMPC(SkillMPC):
