@@ -134,7 +134,6 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
     setups = {a: build_agent(a, params, paths, segments, spec, device) for a in cfg.agents}
 
     started = time.perf_counter()
-    local = Runner(make_simulators(params, segments, spec), setups)
     goal = None if cfg.goal is None else np.asarray(cfg.goal, dtype=np.float64)
     if isinstance(spec, ManipSpaceSpec):  # OGBench's five tasks from exact start states
         specs = manipulation_episodes(spec, cfg.tasks, cfg.episodes, cfg.seed)
@@ -169,6 +168,8 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
         for task, task_specs in specs.items()
     ]
     workers = worker_count(params, len(jobs))
+    # One worker: the jobs run here, on the agents built above; else each worker builds its own.
+    local = Runner(make_simulators(params, segments, spec), setups) if workers == 1 else None
     done = dict(
         zip(
             ((j.agent, j.task) for j in jobs),

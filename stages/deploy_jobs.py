@@ -107,11 +107,17 @@ def worker_count(params: Params, jobs: int) -> int:
 
 
 def run_jobs(
-    jobs: list[Job], local: Runner, params: Params, paths: Paths, workers: int, progress: bool
+    jobs: list[Job],
+    local: Runner | None,
+    params: Params,
+    paths: Paths,
+    workers: int,
+    progress: bool,
 ) -> list[JobResult]:
     """Every job's results, in the order of `jobs`: here on `local` with one worker, else on
-    `workers` spawned processes."""
+    `workers` spawned processes (`local` unused: None)."""
     if workers <= 1:
+        assert local is not None, "one worker runs the jobs here, on `local`"
         return [local.run(job, progress) for job in jobs]
     context = multiprocessing.get_context("spawn")
     pool = context.Pool(workers, _start_worker, (params, paths))

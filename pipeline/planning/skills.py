@@ -227,12 +227,13 @@ class SkillPlanner:
             states, z, task = nets.triton.rollout_cost(
                 eps, s0, s0_n, prior0, nets.goal, nets.skill_penalty
             )
+            uncertainty = None  # `_fused` leaves plans with an uncertainty weight to torch
         else:
             states, z, uncertainty = self._rollout(eps, nets, s0, s0_n, prior0)
             task = cost(states)
         weight = self.config.prior_weight
         objective = task + weight * eps.pow(2).mean(dim=(-2, -1)) if weight else task
-        if self.config.uncertainty_weight:
+        if uncertainty is not None:
             objective = objective + self.config.uncertainty_weight * uncertainty
         return objective, (states, z, task)
 
