@@ -13,9 +13,9 @@
 # the wheels of `bash bench/gpu_wheels.sh --ant` (fetched elsewhere) copied to .whl/ first. The
 # reports are packed into OUT (default /tmp/oposm-gpu-sweep) as sweep.tgz, one folder per
 # setting: reports/deploy/episodes.json and metrics; the logs as logs.tgz.
-# stages/deploy.py imports rerun-sdk (a 166 MB wheel, not among gpu_wheels.sh's) at module level
-# although these deploys record nothing (`deploy.record_episodes=0`): where it is not installed,
-# DEPLOY_TIMEOUT (seconds, `timeout`'s 0 = none) stops the deploys so that the reports are still packed.
+# The deploys need rerun-sdk installed (stages/deploy.py imports it; these deploys record
+# nothing, `deploy.record_episodes=0`). DEPLOY_TIMEOUT (seconds, `timeout`'s 0 = none) bounds
+# the deploys; the reports written by then are packed either way.
 # Dry run without a GPU: DEVICE=cpu EPISODES_DATA=40 STEPS=20 EPISODES=1 MAX_STEPS=60 \
 #   SETTINGS=2 OUT=/tmp/sweep-dry bash bench/gpu_giant_sweep.sh
 set -uo pipefail
@@ -29,7 +29,7 @@ STEPS=${STEPS:-5000}
 EPISODES=${EPISODES:-20}
 MAX_STEPS=${MAX_STEPS:-2000}
 WORKERS=${WORKERS:-15}
-LOGS="$DATA/logs"  # every log, packed as $OUT/logs.tgz: one file, however many deploys
+LOGS="$DATA/logs"  # every log, packed as $OUT/logs.tgz
 mkdir -p "$OUT" "$LOGS"
 source bench/gpu_env.sh
 P=(-p params-ogbench-pointmaze-giant.yaml --data "$DATA"
