@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import functools
 import re
 import sys
 from dataclasses import dataclass
@@ -77,7 +78,8 @@ def _module_file(name: str) -> Path | None:
     return None
 
 
-def imports(path: Path) -> set[Path]:
+@functools.cache  # one parse per file and run: hundreds of stages share most of their code
+def imports(path: Path) -> frozenset[Path]:
     """The project files `path` imports (each package's `__init__.py` on the way included)."""
     found: set[Path] = set()
     for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
@@ -92,9 +94,10 @@ def imports(path: Path) -> set[Path]:
                 module = _module_file(".".join(parts[:i]))
                 if module is not None:
                     found.add(module)
-    return found
+    return frozenset(found)
 
 
+@functools.cache
 def docstring_only(path: Path) -> bool:
     return all(isinstance(n, ast.Expr) for n in ast.parse(path.read_text()).body)
 
@@ -128,7 +131,8 @@ def entry_point(cmd: str) -> Path:
     raise ValueError(f"unknown command (neither `oposm <stage>` nor `python <file>.py`): {cmd}")
 
 
-def code_deps(cmd: str) -> list[str]:
+@functools.cache
+def code_deps(cmd: str) -> tuple[str, ...]:
     """The code entries of a stage running `cmd`: its entry point first, then its other files
     and `FOLDERS`, sorted."""
     entry = entry_point(cmd)
@@ -136,7 +140,7 @@ def code_deps(cmd: str) -> list[str]:
     for path in code_of(entry) - {entry}:
         name = rel(path)
         listed.add(next((f for f in FOLDERS if name.startswith(f + "/")), name))
-    return [rel(entry), *sorted(listed)]
+    return (rel(entry), *sorted(listed))
 
 
 def is_code(entry: str) -> bool:

@@ -230,6 +230,7 @@ def test_deploy_writes_a_valid_report_and_prints_a_summary(project):
     assert "plan_s_p50" not in headline["oposm"]
 
 
+@pytest.mark.slow  # spawns worker processes, each loading torch and MuJoCo
 def test_episodes_are_the_same_bytes_on_one_process_or_several(project, tmp_path):
     """deploy.workers only spreads the (agent, task) jobs over processes: one process and three
     (spawned, each building its own agents) write the reports the fixture's run wrote, byte for

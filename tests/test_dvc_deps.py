@@ -107,7 +107,7 @@ def test_a_comment_inside_a_deps_list_keeps_the_list_whole():
     fixed, changed = deps.rewritten(text)
     listed = yaml.safe_load(fixed)["stages"]["report"]["deps"]
     assert changed == ["report"] and listed[:2] == ["data/a", "data/b"]
-    assert listed[2:] == deps.code_deps("oposm segment")
+    assert listed[2:] == list(deps.code_deps("oposm segment"))
     assert "      # more roots (a comment inside the list)\n      - data/b" in fixed
 
 
@@ -119,6 +119,7 @@ def _run(repo: Path, *args: str) -> str:
     return out.stdout + out.stderr
 
 
+@pytest.mark.slow  # the real dvc, in a repository of its own
 def test_record_re_expresses_unchanged_code_and_keeps_a_change_stale(tmp_path):
     """A lock listing a package's files, its dvc.yaml now the package's folder: `record` writes
     the folder's hash when the files are as the lock recorded them (`dvc status` clean), and
@@ -160,6 +161,7 @@ def test_record_re_expresses_unchanged_code_and_keeps_a_change_stale(tmp_path):
             assert [e["path"] for e in lock] == ["pipeline/model"]
 
 
+@pytest.mark.slow  # the real dvc, in a repository of its own
 def test_bytecode_caches_are_not_inputs(tmp_path):
     """Python writes `__pycache__/` beside the code a stage imports (where
     PYTHONDONTWRITEBYTECODE is not set): the repository's .dvcignore keeps it out of a code

@@ -108,42 +108,71 @@ NOT_RUN_YET: dict[str, tuple[tuple[str, ...], str]] = {
 }  # fmt: skip
 
 
-@functools.cache
 def _stale(pipeline: str) -> list[str]:
     """What in `pipeline`'s committed lock no longer matches: stages it lacks or holds besides
     the pipeline's, changed commands, params and code (DVC's status of each; data deps and outputs
     under data/ are for `dvc status` where the data is), and committed outputs (results/) that
     differ from the ones it recorded."""
-    from dvc.dependency.param import ParamsDependency
+    return _stale_locks()[pipeline]
+
+
+@functools.cache
+def _stale_locks() -> dict[str, list[str]]:
+    """`_stale` of every pipeline in `PIPELINES`, from one read of the repository's DVC files.
+
+    DVC parses YAML in pure Python, and each params dependency reads its file again: the same few
+    params files hundreds of times. Each text is parsed once here (a copy handed out each time,
+    since DVC may change what it gets), which takes the check from about a minute to seconds."""
+    import copy
+    from unittest import mock
+
     from dvc.repo import Repo
+    from dvc.utils.serialize import _yaml
+
+    parsed: dict[tuple[str, str], object] = {}
+    parse = _yaml.parse_yaml
+
+    def parse_once(text, path, typ="safe"):
+        if (text, typ) not in parsed:
+            parsed[text, typ] = parse(text, path, typ=typ)
+        return copy.deepcopy(parsed[text, typ])
+
+    with (
+        mock.patch.object(_yaml, "parse_yaml", parse_once),
+        mock.patch("dvc.utils.strictyaml.parse_yaml", parse_once),
+        Repo(str(ROOT)) as repo,
+    ):
+        return {pipeline: _stale_in(repo, pipeline) for pipeline in PIPELINES}
+
+
+def _stale_in(repo, pipeline: str) -> list[str]:
+    from dvc.dependency.param import ParamsDependency
 
     lock_path = (ROOT / pipeline).with_suffix(".lock")
     if not lock_path.exists():
         return [f"{lock_path.relative_to(ROOT)} does not exist"]
-    locked = set((yaml.safe_load(lock_path.read_text()) or {}).get("stages", {}))
+    lock = yaml.load(lock_path.read_text(), Loader=yaml.CSafeLoader)  # libyaml: its stage names
+    locked = set((lock or {}).get("stages", {}))
     problems = []
-    with Repo(str(ROOT)) as repo:
-        stages = [s for s in repo.index.stages if s.dvcfile.path == str(ROOT / pipeline)]
-        problems += [
-            f"{n}: in the lock, not in {pipeline}" for n in locked - {s.name for s in stages}
-        ]
-        for stage in stages:
-            if stage.name not in locked:
-                if not stage.name.startswith(NOT_RUN_YET.get(pipeline, ((), ""))[0]):
-                    problems.append(f"{stage.name}: never run (not in the lock)")
+    stages = [s for s in repo.index.stages if s.dvcfile.path == str(ROOT / pipeline)]
+    problems += [f"{n}: in the lock, not in {pipeline}" for n in locked - {s.name for s in stages}]
+    for stage in stages:
+        if stage.name not in locked:
+            if not stage.name.startswith(NOT_RUN_YET.get(pipeline, ((), ""))[0]):
+                problems.append(f"{stage.name}: never run (not in the lock)")
+            continue
+        if stage.cmd_changed:
+            problems.append(f"{stage.name}: its command changed")
+        for entry in [*stage.deps, *stage.outs]:
+            if entry.def_path.startswith("data/") or "${" in entry.def_path:
                 continue
-            if stage.cmd_changed:
-                problems.append(f"{stage.name}: its command changed")
-            for entry in [*stage.deps, *stage.outs]:
-                if entry.def_path.startswith("data/") or "${" in entry.def_path:
-                    continue
-                if not isinstance(entry, ParamsDependency) and not entry.exists:
-                    problems.append(f"{stage.name}: {entry.def_path} is missing")
-                elif status := entry.status():
-                    changed = _changed_params(entry) if isinstance(entry, ParamsDependency) else []
-                    problems += [f"{stage.name}: {{'{k}': '{how}'}}" for k, how in changed] or [
-                        f"{stage.name}: {dict(status)}"
-                    ]
+            if not isinstance(entry, ParamsDependency) and not entry.exists:
+                problems.append(f"{stage.name}: {entry.def_path} is missing")
+            elif status := entry.status():
+                changed = _changed_params(entry) if isinstance(entry, ParamsDependency) else []
+                problems += [f"{stage.name}: {{'{k}': '{how}'}}" for k, how in changed] or [
+                    f"{stage.name}: {dict(status)}"
+                ]
     return problems
 
 
