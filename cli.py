@@ -774,7 +774,7 @@ def expert_train(
     Hours on 2 CPU cores. Checkpoints in the scratch folder (outside the work tree, so that a
     later session resumes); the finished actor goes to experts/<robot>/actor.safetensors +
     actor.json, checked (`oposm expert check`)."""
-    from pipeline.expert_config import check_robot, default_params_path, load_expert_params
+    from pipeline.ant_expert.config import check_robot, default_params_path, load_expert_params
     from stages import expert as stage
 
     _setup_logging()
@@ -784,7 +784,7 @@ def expert_train(
     result = stage.train(p, robot, out, stage.ship_dir(robot) if ship else None, path)
     typer.echo("\n".join(f"{key}: {value}" for key, value in result.items() if key != "check"))
     if "check" in result:
-        from pipeline.evaluation.ant_expert import summary_lines
+        from pipeline.ant_expert.check import summary_lines
 
         typer.echo("\n".join(summary_lines(result["check"])))
 
@@ -803,8 +803,8 @@ def expert_check(
     """Speed along the command, and success on OGBench's maze tasks driven by the BFS oracle.
 
     Writes check.json in the scratch folder and the actor JSON's `quality` entry."""
-    from pipeline.evaluation.ant_expert import summary_lines
-    from pipeline.expert_config import check_robot, default_params_path, load_expert_params
+    from pipeline.ant_expert.check import summary_lines
+    from pipeline.ant_expert.config import check_robot, default_params_path, load_expert_params
     from stages import expert as stage
 
     _setup_logging()

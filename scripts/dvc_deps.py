@@ -20,8 +20,10 @@ covers its data files too (the published numbers' TOML files beside their loader
 A rewrite that changes the entries but not the code they cover (a module moved into a listed
 folder, say) leaves a lock recording the old entries. `--record` writes today's hashes for the
 new entries of a stage only where every old entry covering the same files records today's
-content (the code the stage ran is exactly today's); anything else stays as it was, so a stage
-whose code did change stays stale. Same as `dvc commit`, without needing the stage's outputs.
+content, or where the new entry is a file moved unchanged (its content is what the lock recorded
+for a file no longer listed): the code the stage ran is exactly today's. Anything else stays as
+it was, so a stage whose code did change stays stale. Same as `dvc commit`, without needing the
+stage's outputs.
 """
 
 from __future__ import annotations
@@ -216,11 +218,18 @@ def _overlap(a: str, b: str) -> bool:
     return a == b or a.startswith(b.rstrip("/") + "/") or b.startswith(a.rstrip("/") + "/")
 
 
+def _same_file(locked: dict, today: str | None) -> bool:
+    """Whether a lock entry records a file (not a folder) whose content is `today`'s hash."""
+    md5 = locked.get("md5")
+    return today is not None and md5 == today and not md5.endswith(".dir")
+
+
 def record(pipeline: str, root: Path = ROOT) -> list[str]:
     """Write into `pipeline`'s lock today's hash of each code entry its lock lacks, where every
     old entry it replaces (covering some of the same files, and no longer listed) records
-    today's content; drop the old code entries no longer listed. One line per entry written,
-    left, or dropped."""
+    today's content, or where it is a file that moved unchanged (a listed file whose content is
+    that of an entry no longer listed); drop the old code entries no longer listed. One line
+    per entry written, left, or dropped."""
     from dvc.dependency import Dependency
     from dvc.repo import Repo
     from dvc.utils.serialize import dump_yaml, load_yaml
@@ -246,17 +255,24 @@ def record(pipeline: str, root: Path = ROOT) -> list[str]:
                 if path in old:
                     continue
                 replaced = [p for p in gone if _overlap(p, path)]
-                if not replaced:
+                moved = [p for p in gone if _same_file(old[p], today(path))]
+                if replaced:
+                    if any(old[p].get("md5") != today(p) for p in replaced):
+                        kept.update(replaced)  # what changed stays visible in the lock
+                        done.append(
+                            f"{pipeline}:{name}: {path} left stale (changed since the lock)"
+                        )
+                        continue
+                    how = "unchanged since the lock"
+                elif moved:
+                    how = f"{moved[0]} moved here unchanged"
+                else:
                     done.append(f"{pipeline}:{name}: {path} left new (the stage never ran it)")
-                    continue
-                if any(old[p].get("md5") != today(p) for p in replaced):
-                    kept.update(replaced)  # what changed stays visible in the lock
-                    done.append(f"{pipeline}:{name}: {path} left stale (changed since the lock)")
                     continue
                 dep.save()
                 saved = dep.dumpd()
                 added.append({k: saved[k] for k in LOCK_KEYS if k in saved})
-                done.append(f"{pipeline}:{name}: {path} recorded (unchanged since the lock)")
+                done.append(f"{pipeline}:{name}: {path} recorded ({how})")
             dropped = [p for p in gone if p not in kept]
             done += [f"{pipeline}:{name}: {path} dropped (no longer listed)" for path in dropped]
             deps = [e for e in locked["deps"] if e["path"] not in dropped] + added

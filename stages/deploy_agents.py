@@ -14,8 +14,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from pipeline.ant_expert.actor import load_actor
 from pipeline.config import Params
-from pipeline.envs.ant_expert import load_actor
 from pipeline.envs.expert import ExpertConfig
 from pipeline.envs.kitchen import KitchenSpec
 from pipeline.envs.manipspace import ManipSpaceSpec

@@ -15,9 +15,9 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from pipeline.envs.ant_expert import load_actor, save_actor, update_info
+from pipeline.ant_expert.actor import load_actor, save_actor, update_info
+from pipeline.ant_expert.config import AntExpertParams, check_robot
 from pipeline.errors import UserError
-from pipeline.expert_config import AntExpertParams, check_robot
 from pipeline.io import write_json
 
 log = logging.getLogger(__name__)
@@ -43,7 +43,7 @@ def train(
     params: AntExpertParams, robot: str, out: Path, ship: Path | None, params_file: Path
 ) -> dict[str, Any]:
     """Train or resume; ship and check the actor once `total_steps` are done. Returns a summary."""
-    from pipeline.training.ant_expert import ACTOR_FILE, train_direction_expert
+    from pipeline.ant_expert.training import ACTOR_FILE, train_direction_expert
 
     check_robot(robot)
     command = "oposm " + " ".join(shlex.quote(a) for a in sys.argv[1:])
@@ -74,7 +74,7 @@ def train(
 
 def check(params: AntExpertParams, robot: str, actor_path: Path, report: Path) -> dict[str, Any]:
     """Measure an exported actor; write `report` and the actor JSON's `quality` entry."""
-    from pipeline.evaluation.ant_expert import check_direction_actor
+    from pipeline.ant_expert.check import check_direction_actor
 
     check_robot(robot)
     if not actor_path.exists():

@@ -153,7 +153,7 @@ def test_a_segments_index_with_a_bad_value_names_file_and_field(tmp_path, segmen
 
 
 def test_an_actor_description_with_a_bad_value_names_file_and_field(tmp_path):
-    from pipeline.envs.ant_expert import ActorSpec, DirectionActor, load_actor, save_actor
+    from pipeline.ant_expert.actor import ActorSpec, DirectionActor, load_actor, save_actor
 
     path = tmp_path / "actor.safetensors"
     save_actor(DirectionActor(ActorSpec(29, 8, [16], "gelu", [-1.0] * 8, [1.0] * 8)), path)

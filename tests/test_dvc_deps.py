@@ -162,6 +162,42 @@ def test_record_re_expresses_unchanged_code_and_keeps_a_change_stale(tmp_path):
 
 
 @pytest.mark.slow  # the real dvc, in a repository of its own
+def test_record_takes_a_file_moved_unchanged_and_keeps_a_moved_and_edited_one_stale(tmp_path):
+    """A module moved to a new folder: `record` writes its new entry when its content is what the
+    lock recorded under the old path (`dvc status` clean), and leaves it new when it changed."""
+    for case, edit in (("same", False), ("edited", True)):
+        repo = tmp_path / case
+        (repo / "pipeline/envs").mkdir(parents=True)
+        (repo / "pipeline/envs/actor.py").write_text("A = 1\n")
+        stage = "stages:\n  make:\n    cmd: echo made > out.txt\n    deps:\n    - {}\n"
+        stage += "    outs:\n    - out.txt\n"
+        (repo / "dvc.yaml").write_text(stage.format("pipeline/envs/actor.py"))
+        _run(repo, "git", "init", "-q")
+        _run(repo, sys.executable, "-m", "dvc", "init", "-q")
+        _run(repo, sys.executable, "-m", "dvc", "repro", "-q")
+        (repo / "pipeline/expert").mkdir()
+        (repo / "pipeline/envs/actor.py").rename(repo / "pipeline/expert/actor.py")
+        if edit:
+            (repo / "pipeline/expert/actor.py").write_text("A = 2\n")
+        (repo / "dvc.yaml").write_text(stage.format("pipeline/expert/actor.py"))
+        done = deps.record("dvc.yaml", root=repo)
+        status = _run(repo, sys.executable, "-m", "dvc", "status")
+        lock = yaml.safe_load((repo / "dvc.lock").read_text())["stages"]["make"]["deps"]
+        if edit:
+            new = "dvc.yaml:make: pipeline/expert/actor.py left new (the stage never ran it)"
+            assert new in done
+            assert "pipeline/expert/actor.py" in status
+            assert lock == []
+        else:
+            assert (
+                "dvc.yaml:make: pipeline/expert/actor.py recorded (pipeline/envs/actor.py moved "
+                "here unchanged)" in done
+            )
+            assert "Data and pipelines are up to date" in status
+            assert [e["path"] for e in lock] == ["pipeline/expert/actor.py"]
+
+
+@pytest.mark.slow  # the real dvc, in a repository of its own
 def test_bytecode_caches_are_not_inputs(tmp_path):
     """Python writes `__pycache__/` beside the code a stage imports (where
     PYTHONDONTWRITEBYTECODE is not set): the repository's .dvcignore keeps it out of a code

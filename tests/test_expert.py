@@ -18,18 +18,18 @@ from stable_baselines3.common.callbacks import BaseCallback
 from typer.testing import CliRunner
 
 from cli import app
-from pipeline.envs.ant import EXPERT_OBS_DIM, UpsideDownEnd, make_direction_env, torso_up
-from pipeline.envs.ant_expert import load_actor, read_spec, save_actor
-from pipeline.errors import UserError
-from pipeline.evaluation.ant_expert import direction_speed, maze_success
-from pipeline.expert_config import AntExpertParams, SACParams, load_expert_params
-from pipeline.training.ant_expert import (
+from pipeline.ant_expert.actor import load_actor, read_spec, save_actor
+from pipeline.ant_expert.check import direction_speed, maze_success
+from pipeline.ant_expert.config import AntExpertParams, SACParams, load_expert_params
+from pipeline.ant_expert.training import (
     ACTOR_FILE,
     build_sac,
     export_actor,
     resume_dir,
     train_direction_expert,
 )
+from pipeline.envs.ant import EXPERT_OBS_DIM, UpsideDownEnd, make_direction_env, torso_up
+from pipeline.errors import UserError
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -256,7 +256,7 @@ def test_loading_needs_neither_sb3_nor_pickle(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "stable_baselines3", None)
     for name in [m for m in sys.modules if m == "pipeline" or m.startswith("pipeline.")]:
         monkeypatch.delitem(sys.modules, name)
-    fresh = importlib.import_module("pipeline.envs.ant_expert")
+    fresh = importlib.import_module("pipeline.ant_expert.actor")
     actor = fresh.load_actor(tmp_path / ACTOR_FILE)
     assert actor.act(np.zeros(EXPERT_OBS_DIM)).shape == (8,)
 
@@ -267,7 +267,7 @@ def test_a_fresh_process_loads_an_actor_without_importing_sb3(tmp_path):
     model = build_sac(cfg, make_direction_env(max_episode_steps=10))
     save_actor(export_actor(model, cfg, {}), tmp_path / ACTOR_FILE)
     code = (
-        "import sys; from pipeline.envs.ant_expert import load_actor; "
+        "import sys; from pipeline.ant_expert.actor import load_actor; "
         f"load_actor({str(tmp_path / ACTOR_FILE)!r}); "
         "assert 'stable_baselines3' not in sys.modules, 'loader imported stable_baselines3'"
     )

@@ -17,8 +17,8 @@ from factories import one_line_error
 from typer.testing import CliRunner
 
 from cli import app
+from pipeline.ant_expert.actor import ActorSpec, DirectionActor, load_actor, save_actor
 from pipeline.envs.ant import expert_observation
-from pipeline.envs.ant_expert import ActorSpec, DirectionActor, load_actor, save_actor
 from pipeline.envs.batch import BatchSim
 from pipeline.envs.ogbench_oracle import BFSOracle, OGBenchOracleAgent
 from pipeline.envs.spec import make_env_spec

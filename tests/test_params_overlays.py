@@ -8,8 +8,8 @@ import pytest
 import yaml
 from factories import one_line_error
 
+from pipeline.ant_expert.config import AntExpertParams, load_expert_params
 from pipeline.config import EXTENDS, load_params, params_files, read_params_file
-from pipeline.expert_config import AntExpertParams, load_expert_params
 
 ROOT = Path(__file__).resolve().parents[1]
 VARIANTS = sorted(p.name for p in ROOT.glob("params-*.yaml"))

@@ -202,7 +202,7 @@ def test_every_readme_command_parses_and_its_params_validate(args, monkeypatch):
         return
     _, options = parse(args)
     if "set_" in options and args[0] == "expert":  # its own params file
-        from pipeline.expert_config import default_params_path, load_expert_params
+        from pipeline.ant_expert.config import default_params_path, load_expert_params
 
         params = options.get("params") or default_params_path(options["robot"])
         load_expert_params(ROOT / params, options["set_"] or [])

@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.ant_expert.actor import DirectionActor
 from pipeline.envs.ant import expert_observation
-from pipeline.envs.ant_expert import DirectionActor
 from pipeline.envs.ogbench import check_ogbench_id, ogbench_cell, reference_env
 from pipeline.errors import UserError
 

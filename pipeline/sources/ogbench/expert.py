@@ -6,7 +6,7 @@ trained direction-commanded policy gets the ant's state without its x-y position
 direction (`[qpos[2:], qvel, direction]`, 29 numbers) and acts deterministically (its
 `temperature=0`). Gaussian noise and the clip to the action bounds come after, in the caller.
 
-Here the ant's policy is our own `DirectionActor` (`pipeline.envs.ant_expert`, issue 19 §1), read
+Here the ant's policy is our own `DirectionActor` (`pipeline.ant_expert.actor`, issue 19 §1), read
 from safetensors + JSON, never from a pickle; its file's sha256 and its JSON's `info` (command,
 seed, steps, measured quality) go into the dataset's metadata.
 """
@@ -20,8 +20,8 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.ant_expert.actor import DirectionActor, json_path, load_actor
 from pipeline.envs.ant import expert_observation
-from pipeline.envs.ant_expert import DirectionActor, json_path, load_actor
 from pipeline.envs.ogbench import OGBenchMazeSpec
 from pipeline.errors import UserError
 

@@ -7,7 +7,7 @@ step counter, replay buffer restored), and exports the actor as safetensors + JS
 The resume folder (`<out>/resume/`: `sac.zip`, `replay.pkl`, `state.json`) holds stable-baselines3's
 own `save` / `save_replay_buffer` files, which are pickles: they are written and read only by this
 module, never shipped and never read from a user. What leaves training is the actor export, which
-`pipeline.envs.ant_expert` reads without stable-baselines3 or pickle.
+`pipeline.ant_expert.actor` reads without stable-baselines3 or pickle.
 
 A checkpoint is taken between two rollouts (after the step's gradient update), so it holds exactly
 `steps` transitions and their updates. A resumed run starts a new episode (the simulator's mid-
@@ -41,11 +41,11 @@ from stable_baselines3.common.noise import ActionNoise
 from torch import nn
 from tqdm import tqdm
 
+from pipeline.ant_expert.actor import ActorSpec, DirectionActor, save_actor
+from pipeline.ant_expert.config import SACParams, SACPhase
 from pipeline.devices import resolve_device
 from pipeline.envs.ant import UpsideDownEnd, make_direction_env
-from pipeline.envs.ant_expert import ActorSpec, DirectionActor, save_actor
 from pipeline.errors import UserError
-from pipeline.expert_config import SACParams, SACPhase
 from pipeline.io import atomic_dir
 from pipeline.readback import READBACK_CONFIG, Count, read_json, validated
 

@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from pipeline.ant_expert.actor import DirectionActor
+from pipeline.ant_expert.config import ExpertCheckParams
 from pipeline.envs.ant import (
     expert_observation,
     global_seed,
@@ -24,9 +26,7 @@ from pipeline.envs.ant import (
     oracle_direction,
     torso_up,
 )
-from pipeline.envs.ant_expert import DirectionActor
 from pipeline.evaluation.proportions import wilson_interval
-from pipeline.expert_config import ExpertCheckParams
 
 
 def direction_speed(
