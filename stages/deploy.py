@@ -27,7 +27,7 @@ from pipeline.config import DeployParams, Params
 from pipeline.devices import resolve_device, torch_threads
 from pipeline.envs.disturbance import Pushes
 from pipeline.envs.kitchen import KitchenSpec
-from pipeline.envs.manipspace import ManipSpaceSpec
+from pipeline.envs.manipspace.env import ManipSpaceSpec
 from pipeline.envs.spec import EnvSpec, make_env_spec
 from pipeline.errors import UserError
 from pipeline.evaluation.episodes import EpisodeResult, RunConfig

@@ -13,7 +13,7 @@ from pipeline.dataset import DatasetInfo, Episode
 from pipeline.envs.checks import DatasetReport, check_maze_dataset, raise_for_problems
 from pipeline.envs.disturbance import Pushes
 from pipeline.envs.generate import dataset_info, generate_episodes
-from pipeline.envs.manipspace import is_manipspace
+from pipeline.envs.manipspace.env import is_manipspace
 from pipeline.envs.spec import check_physics_dim
 from pipeline.errors import UserError
 from pipeline.paths import Paths

@@ -1,6 +1,6 @@
 """Oracle stage: OGBench's scripted oracles on its manipulation evaluation tasks.
 
-The reference row beside the learned agents (`pipeline.envs.manipspace_solver`): OGBench's plan
+The reference row beside the learned agents (`pipeline.envs.manipspace.solver`): OGBench's plan
 oracles, subtask by subtask, in OGBench's own env, on the starts of `oposm deploy`'s episodes
 (`deploy.episodes` per task from `deploy.seed`). Writes `<data>/reports/deploy/report.json` in the
 deploy report's layout with one agent, `oracle` (run it with `--run oracle`: the manipulation
@@ -16,8 +16,8 @@ from typing import Any
 import numpy as np
 
 from pipeline.config import Params
-from pipeline.envs.manipspace import EPISODE_STEPS, is_manipspace, manipspace_spec
-from pipeline.envs.manipspace_solver import OracleEpisode, evaluate
+from pipeline.envs.manipspace.env import EPISODE_STEPS, is_manipspace, manipspace_spec
+from pipeline.envs.manipspace.solver import OracleEpisode, evaluate
 from pipeline.errors import UserError
 from pipeline.evaluation.proportions import wilson_interval
 from pipeline.paths import Paths
@@ -79,7 +79,7 @@ def run(params: Params, paths: Paths) -> dict[str, Any]:
         "max_steps": EPISODE_STEPS[env_id],
         "by_agent": {AGENT: {**by_task, "wall_s": wall, "settings": {
             "config": "OGBench's plan oracles (ogbench.manipspace.oracles.plan), noise-free, "
-                      "one subtask at a time (pipeline/envs/manipspace_solver.py)"}}},
+                      "one subtask at a time (pipeline/envs/manipspace/solver.py)"}}},
         "wall_s": wall,
         "distance_unit": "success tolerances",
     }  # fmt: skip

@@ -16,7 +16,7 @@ from factories import one_line_error
 
 from pipeline.config import load_params
 from pipeline.envs.batch import BatchSim
-from pipeline.envs.manipspace import READINGS, manipspace_spec
+from pipeline.envs.manipspace.env import READINGS, manipspace_spec
 from pipeline.envs.spec import PointMazeSpec, make_env_spec
 from pipeline.evaluation.goals import GoalRule
 from pipeline.evaluation.tasks import check_manipulation_tasks, manipulation_episodes

@@ -8,7 +8,14 @@ import mujoco
 import numpy as np
 import pytest
 
-from pipeline.envs.manipspace import (
+from pipeline.envs.manipspace.data import (
+    SUBTASKS,
+    check,
+    collection_env,
+    default_p_random_action,
+    generate,
+)
+from pipeline.envs.manipspace.env import (
     MANIPSPACE_ENVS,
     READINGS,
     ManipSpaceSpec,
@@ -17,14 +24,7 @@ from pipeline.envs.manipspace import (
     manipspace_spec,
     puzzle_toggles,
 )
-from pipeline.envs.manipspace_data import (
-    SUBTASKS,
-    check,
-    collection_env,
-    default_p_random_action,
-    generate,
-)
-from pipeline.envs.manipspace_solver import Subtask, oracle_info
+from pipeline.envs.manipspace.solver import Subtask, oracle_info
 from pipeline.envs.maze import PHYSICS_SPEC
 from pipeline.errors import UserError
 

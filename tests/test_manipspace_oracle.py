@@ -1,4 +1,4 @@
-"""OGBench's oracles on its evaluation tasks (`pipeline/envs/manipspace_solver.py`, `oposm
+"""OGBench's oracles on its evaluation tasks (`pipeline/envs/manipspace/solver.py`, `oposm
 oracle`): the subtask order on hand-made states, real episodes in OGBench's env from the agents'
 starts, and the stage's report as the manipulation report reads it; the puzzles' exact Lights Out
 solver and its presses in OGBench's env."""
@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 from factories import one_line_error
 
-from pipeline.envs.manipspace import (
+from pipeline.envs.manipspace.env import (
     EPISODE_STEPS,
     ObjectConfig,
     make_manipspace_env,
     manipspace_spec,
 )
-from pipeline.envs.manipspace_solver import (
+from pipeline.envs.manipspace.solver import (
     Subtask,
     episode_seeds,
     in_drawer_goal,

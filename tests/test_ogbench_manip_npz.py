@@ -17,8 +17,8 @@ from typer.testing import CliRunner
 
 from cli import app
 from pipeline.config import load_params
-from pipeline.envs.manipspace import READINGS, manipspace_spec
-from pipeline.envs.manipspace_data import check, generate, leaves_table
+from pipeline.envs.manipspace.data import check, generate, leaves_table
+from pipeline.envs.manipspace.env import READINGS, manipspace_spec
 from pipeline.paths import Paths
 from pipeline.recording import iter_episodes, read_info
 from pipeline.sources.ogbench.manip_npz import (

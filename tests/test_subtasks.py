@@ -57,7 +57,7 @@ def test_objects_must_cover_the_goal_once_with_positive_tolerances(objects, scal
     [("cube-double-v0", 2), ("scene-v0", 1 + 2 + 2), ("puzzle-3x3-v0", 9)],
 )
 def test_a_manipulation_goal_splits_into_its_objects(env_id, objects):
-    from pipeline.envs.manipspace import ManipSpaceSpec
+    from pipeline.envs.manipspace.env import ManipSpaceSpec
 
     spec = ManipSpaceSpec.create(env_id)
     assert len(spec.goal_objects) == objects

@@ -12,7 +12,7 @@ from rerun.chunk import RrdReader
 from test_viz_views import _entities, _values, _verify, _views
 
 from pipeline.dataset import Episode
-from pipeline.envs.manipspace import SUCCESS_TOLERANCE, manipspace_spec, reference_env
+from pipeline.envs.manipspace.env import SUCCESS_TOLERANCE, manipspace_spec, reference_env
 from pipeline.evaluation.episodes import EpisodeResult, EpisodeTrace
 from pipeline.evaluation.tasks import EpisodeSpec
 from pipeline.recording import write_dataset
@@ -260,7 +260,7 @@ def test_every_maze_domain_has_a_dataset_view(tmp_path, env_id):
 @pytest.fixture(scope="module")
 def puzzle():
     """A puzzle-3x3 play episode of 60 steps: the button oracle presses buttons in it."""
-    from pipeline.envs.manipspace_data import generate
+    from pipeline.envs.manipspace.data import generate
 
     spec = manipspace_spec("puzzle-3x3-v0")
     ep = generate(spec.env_id, "play", episodes=1, episode_steps=60, seed=2)[0]

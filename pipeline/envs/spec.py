@@ -5,7 +5,7 @@ checkpoint) by `make_env_spec`. It owns the nominal MuJoCo model and the per-env
 stepping: how an observation is read from and written into `MjData`, and one control step. The
 batched simulator (`pipeline.envs.batch.BatchSim`) runs any spec; a new environment family (e.g.
 OGBench point / ant mazes, `pipeline.envs.ogbench`; OGBench's manipulation,
-`pipeline.envs.manipspace`; the Franka kitchen, `pipeline.envs.kitchen`) is a new spec class,
+`pipeline.envs.manipspace.env`; the Franka kitchen, `pipeline.envs.kitchen`) is a new spec class,
 nothing else.
 
 It also carries the facts that other modules would otherwise hard-code: the sizes of states,
@@ -27,7 +27,7 @@ import numpy as np
 
 from pipeline.dataset import DatasetInfo
 from pipeline.envs.kitchen import KITCHEN_ENVS, is_kitchen, kitchen_spec
-from pipeline.envs.manipspace import MANIPSPACE_ENVS, is_manipspace, manipspace_spec
+from pipeline.envs.manipspace.env import MANIPSPACE_ENVS, is_manipspace, manipspace_spec
 from pipeline.envs.maze import (
     PHYSICS_SPEC,
     SUPPORTED_ENVS,

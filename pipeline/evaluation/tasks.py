@@ -36,7 +36,7 @@ import numpy as np
 
 from pipeline.envs.ids import OGBENCH_PREFIX, TASKS, layout_cell
 from pipeline.envs.kitchen import CUSTOM_TASK, KITCHEN_TASK_SETS, KitchenSpec
-from pipeline.envs.manipspace import ManipSpaceSpec
+from pipeline.envs.manipspace.env import ManipSpaceSpec
 from pipeline.envs.ogbench import TASK_NOISE, is_ogbench_maze, ogbench_tasks
 from pipeline.errors import UserError
 from pipeline.segments import Segments

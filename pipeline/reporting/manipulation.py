@@ -302,7 +302,7 @@ def render(results: Mapping[str, Any]) -> str:
         "paper's low-level planner: a BC action prior and a single-step model), GCBC (ours, on "
         "the goal dims), and the reference row `oracle`: OGBench's own plan oracles (those that "
         "made the data, without their noise) in OGBench's env, one subtask at a time toward the "
-        "task's goal (`oposm oracle`, `pipeline/envs/manipspace_solver.py`), on the same starts.",
+        "task's goal (`oposm oracle`, `pipeline/envs/manipspace/solver.py`), on the same starts.",
         "- Intervals: 95 % Wilson; verdicts by the rules of `pipeline/reporting/common.py` "
         "(docs/experiments.md).",
         "",

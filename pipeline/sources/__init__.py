@@ -17,7 +17,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from pipeline.envs.manipspace import is_manipspace
+from pipeline.envs.manipspace.env import is_manipspace
 from pipeline.errors import UserError
 from pipeline.sources.common import ImportedDataset, is_simulated_maze
 from pipeline.sources.d4rl import read_d4rl, write_d4rl

@@ -21,7 +21,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from pipeline.envs.manipspace import ManipSpaceSpec, is_manipspace, manipspace_spec
+from pipeline.envs.manipspace.env import ManipSpaceSpec, is_manipspace, manipspace_spec
 from pipeline.envs.spec import make_env_spec
 from pipeline.errors import UserError
 from pipeline.io import atomic_path

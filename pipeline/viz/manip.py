@@ -29,7 +29,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from pipeline.envs.manipspace import (
+from pipeline.envs.manipspace.env import (
     DRAWER_SCALE,
     SUCCESS_TOLERANCE,
     WINDOW_SCALE,

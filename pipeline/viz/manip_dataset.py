@@ -17,7 +17,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from pipeline.envs.manipspace import ManipSpaceSpec
+from pipeline.envs.manipspace.env import ManipSpaceSpec
 from pipeline.viz.manip_scene import (
     PINCH,
     ArmPoses,

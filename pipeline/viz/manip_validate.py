@@ -13,7 +13,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from pipeline.envs.manipspace import ManipSpaceSpec
+from pipeline.envs.manipspace.env import ManipSpaceSpec
 from pipeline.evaluation.open_loop import OpenLoopResult
 from pipeline.io import atomic_path
 from pipeline.viz.maze import PATH, PLAN, SINGLE

@@ -41,7 +41,7 @@ import mujoco
 import numpy as np
 
 from pipeline.dataset import Episode
-from pipeline.envs.manipspace import (
+from pipeline.envs.manipspace.env import (
     CONTACT_FORCE_SCALE,
     CUBE_DIM,
     EFFECTOR_DOWN_WXYZ,
@@ -62,7 +62,7 @@ from pipeline.sources.ogbench.npz import episode_ends, load_npz, maze_of_file, w
 log = logging.getLogger(__name__)
 
 REQUIRED = ("observations", "actions", "terminals", "qpos", "qvel")
-# Observation columns of the readings (`pipeline.envs.manipspace`'s layout).
+# Observation columns of the readings (`pipeline.envs.manipspace.env`'s layout).
 PINCH = slice(12, 15)
 COS_YAW, SIN_YAW, CONTACT = 15, 16, 18
 YAW_IN_CUBE = (7, 8)  # a cube's cos / sin of yaw, after its position (3) and quaternion (4)

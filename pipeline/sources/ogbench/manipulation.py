@@ -1,7 +1,7 @@
 """OGBench's manipulation datasets (cube-single, cube-double, scene, the puzzles; `play` or
 `noisy`) as an ingest source, and the checks of what the ingest stage wrote.
 
-Generation is `pipeline.envs.manipspace_data` (OGBench's scripted oracles, its recipe); this
+Generation is `pipeline.envs.manipspace.data` (OGBench's scripted oracles, its recipe); this
 module turns its episodes into the dataset conventions (`pipeline/dataset.py`) and back:
 
 - an episode of `episode_steps` N is generated with N actions (N + 1 states); the last state,
@@ -42,16 +42,7 @@ import numpy as np
 
 from pipeline.dataset import DatasetInfo, Episode
 from pipeline.envs.checks import DatasetReport
-from pipeline.envs.manipspace import (
-    BUTTON_DIM,
-    CUBE_DIM,
-    PROPRIO_DIM,
-    XYZ_CENTER,
-    XYZ_SCALE,
-    ManipSpaceSpec,
-    manipspace_spec,
-)
-from pipeline.envs.manipspace_data import (
+from pipeline.envs.manipspace.data import (
     NOISE,
     RECIPES,
     check,
@@ -62,6 +53,15 @@ from pipeline.envs.manipspace_data import (
     observed_buttons,
     out_of_bounds,
     state_buttons,
+)
+from pipeline.envs.manipspace.env import (
+    BUTTON_DIM,
+    CUBE_DIM,
+    PROPRIO_DIM,
+    XYZ_CENTER,
+    XYZ_SCALE,
+    ManipSpaceSpec,
+    manipspace_spec,
 )
 from pipeline.errors import UserError
 from pipeline.sources.common import Clock, ImportedDataset, with_progress
@@ -105,7 +105,7 @@ class ManipulationReport(DatasetReport):
 
 
 def state_names(spec: ManipSpaceSpec) -> tuple[list[str], list[str]]:
-    """Names and units of the observation's dims (`pipeline.envs.manipspace`'s layout)."""
+    """Names and units of the observation's dims (`pipeline.envs.manipspace.env`'s layout)."""
     names = [f"arm_qpos[{i}]" for i in range(6)] + [f"arm_qvel[{i}]" for i in range(6)]
     units = ["rad"] * 6 + ["rad/s"] * 6
     names += [

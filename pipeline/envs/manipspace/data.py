@@ -58,7 +58,7 @@ import mujoco
 import numpy as np
 
 from pipeline.envs.ant import global_seed
-from pipeline.envs.manipspace import (
+from pipeline.envs.manipspace.env import (
     BUTTON_DIM,
     CUBE_DIM,
     HEALTHY_MARGIN,

@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.envs.ids import OGBENCH_PREFIX, TASKS
-from pipeline.envs.manipspace import (
+from pipeline.envs.manipspace.env import (
     EPISODE_STEPS,
     SUCCESS_TOLERANCE,
     ManipSpaceSpec,
