@@ -60,6 +60,14 @@ PLUMBING = frozenset({
     "pipeline/readback.py",  # checks of files read back: a valid file's values pass unchanged
 })  # fmt: skip
 LOCK_KEYS = ("path", "hash", "md5", "size", "nfiles")  # a lock entry's keys, in DVC's order
+# Entry points renamed without changing what they run: (old, new) command prefixes. `--record`
+# writes a stage's new command into its lock where the locked one, so renamed, is exactly it.
+COMMAND_MOVES = (
+    ("python scripts/antmaze_report.py", "oposm report antmaze"),
+    ("python scripts/manipulation_report.py", "oposm report manipulation"),
+    ("python scripts/ogbench_point_report.py", "oposm report ogbench-point"),
+    ("oposm results", "oposm report experiments"),
+)
 FOLDERS = (
     "pipeline/model",
     "pipeline/planning",
@@ -123,9 +131,11 @@ def code_of(entry: Path) -> set[Path]:
 
 
 def entry_point(cmd: str) -> Path:
-    """The file a stage's command runs: `oposm <stage>` -> stages/<stage>.py, `python <script>`
-    -> the script."""
+    """The file a stage's command runs: `oposm <stage>` -> stages/<stage>.py, `oposm report
+    <benchmark>` -> stages/<benchmark>_report.py, `python <script>` -> the script."""
     words = cmd.split()
+    if words[:2] == ["oposm", "report"]:  # a benchmark's page: stages/<benchmark>_report.py
+        return ROOT / "stages" / f"{words[2].replace('-', '_')}_report.py"
     if words[0] == "oposm":
         return ROOT / "stages" / f"{words[1]}.py"
     if words[0] == "python" and words[1].endswith(".py"):
@@ -224,8 +234,17 @@ def _same_file(locked: dict, today: str | None) -> bool:
     return today is not None and md5 == today and not md5.endswith(".dir")
 
 
+def moved_command(cmd: str) -> str:
+    """`cmd` with its entry point renamed by `COMMAND_MOVES` (the same arguments after it)."""
+    for old, new in COMMAND_MOVES:
+        if cmd == old or cmd.startswith(old + " "):
+            return new + cmd[len(old) :]
+    return cmd
+
+
 def record(pipeline: str, root: Path = ROOT) -> list[str]:
-    """Write into `pipeline`'s lock today's hash of each code entry its lock lacks, where every
+    """Write into `pipeline`'s lock a stage's command where only its entry point was renamed
+    (`COMMAND_MOVES`), and today's hash of each code entry its lock lacks, where every
     old entry it replaces (covering some of the same files, and no longer listed) records
     today's content, or where it is a file that moved unchanged (a listed file whose content is
     that of an entry no longer listed); drop the old code entries no longer listed. One line
@@ -243,6 +262,9 @@ def record(pipeline: str, root: Path = ROOT) -> list[str]:
             stage = stages.get(name)
             if stage is None:
                 continue
+            if locked.get("cmd") != stage.cmd and moved_command(locked.get("cmd", "")) == stage.cmd:
+                locked["cmd"] = stage.cmd
+                done.append(f"{pipeline}:{name}: command recorded (its entry point renamed)")
             listed = {d.def_path: d for d in stage.deps if is_code(d.def_path)}
             old = {e["path"]: e for e in locked["deps"] if is_code(e["path"])}
             gone = [p for p in old if p not in listed]

@@ -1,5 +1,6 @@
-"""The ant-maze report (pipeline/reporting/antmaze.py, scripts/antmaze_report.py): both protocols
-from one run, its verdicts by the common rules, the JSON a script can check."""
+"""The ant-maze report (pipeline/reporting/antmaze.py; `oposm report antmaze`,
+stages/antmaze_report.py): both protocols from one run, its verdicts by the common rules, the
+JSON a script can check."""
 
 import json
 import shutil
@@ -12,10 +13,9 @@ import pytest
 from pipeline.errors import UserError
 from pipeline.reporting import antmaze
 from pipeline.reporting.common import FAILS, HOLDS, INCONCLUSIVE, rate
+from stages import antmaze_report
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "scripts"))
-import antmaze_report  # noqa: E402
 
 
 def _row(successes: int, n: int, within: int | None = None) -> dict:
@@ -205,7 +205,7 @@ def test_a_corrupt_report_is_a_one_line_error_naming_it(tmp_path):
     bad.parent.mkdir(parents=True)
     bad.write_text("{not json")
     result = subprocess.run(
-        [sys.executable, str(ROOT / "scripts/antmaze_report.py"), "maze", "medium",
+        [sys.executable, str(ROOT / "cli.py"), "report", "antmaze", "maze", "medium",
          str(tmp_path / "ant"), "--out", str(tmp_path / "results/medium.json")],
         capture_output=True, text=True,
     )  # fmt: skip

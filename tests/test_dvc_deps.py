@@ -65,8 +65,10 @@ def test_the_scan_follows_imports_into_packages_and_functions():
 
 def test_the_entry_points_are_found():
     assert deps.entry_point("oposm train -S x=1") == ROOT / "stages/train.py"
-    script = "python scripts/ogbench_point_report.py --x"
-    assert deps.entry_point(script) == ROOT / "scripts/ogbench_point_report.py"
+    script = "python scripts/stability_report.py --x"
+    assert deps.entry_point(script) == ROOT / "scripts/stability_report.py"
+    page = "oposm report ogbench-point --vars v.yaml"
+    assert deps.entry_point(page) == ROOT / "stages/ogbench_point_report.py"
     with pytest.raises(ValueError, match="unknown command"):
         deps.entry_point("bash run.sh")
 

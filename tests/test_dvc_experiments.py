@@ -247,7 +247,7 @@ RERUN_PENDING: dict[str, str] = {
     "timings; the page shows a dataset's ladder where there is one; the puzzles are datasets it "
     "knows (the page as before until they run)",
     "pipeline/planning": "(new) simulated.py, the oposm_sim agent; the other agents unchanged",
-    "scripts/manipulation_report.py": "a `ladder` subcommand and the page's --ladders; the "
+    "stages/manipulation_report.py": "a `ladder` subcommand and the page's --ladders; the "
     "datasets' reports unchanged",
     "pipeline/reporting/manipulation_ladder.py": "(new) the ladder of where object moves fail",
     "pipeline/value/network.py": "(new) the planner's optional learned value (value.weight 0, "
@@ -388,7 +388,7 @@ RERUN_PENDING["pipeline/evaluation/published"] = (
 )
 RERUN_PENDING |= {
     path: "imports the published numbers from pipeline/evaluation/published: the same pages"
-    for path in ("stages/results.py", "pipeline/reporting/ogbench_point.py")
+    for path in ("stages/experiments_report.py", "pipeline/reporting/ogbench_point.py")
 }  # fmt: skip
 for _path in ("pipeline/reporting/antmaze.py", "pipeline/reporting/manipulation.py"):
     RERUN_PENDING[_path] += "; the published numbers from pipeline/evaluation/published"
@@ -427,6 +427,20 @@ RERUN_PENDING |= {
     path: "imports the manipulation envs from pipeline/envs/manipspace/: the same code"
     for path in ("pipeline/envs/batch.py", "stages/ingest.py")
 }  # fmt: skip
+
+# One route for the results pages, `oposm report <benchmark>` (were `oposm results` and
+# scripts/<benchmark>_report.py): the same command lines in stages/<benchmark>_report.py, the
+# commands recorded in the locks by `scripts/dvc_deps.py --record` (COMMAND_MOVES); the pages
+# name the new commands.
+_ROUTE = "moved from scripts/ (or stages/results.py) under `oposm report`: the same pages, which "
+_ROUTE += "name the new command"
+for _path in ("stages/antmaze_report.py", "stages/ogbench_point_report.py"):
+    RERUN_PENDING[_path] = _ROUTE
+for _path in ("stages/experiments_report.py", "stages/manipulation_report.py"):
+    RERUN_PENDING[_path] += f"; {_ROUTE}"
+for _path in ("pipeline/reporting/antmaze.py", "pipeline/reporting/manipulation.py",
+              "pipeline/reporting/ogbench_point.py", "pipeline/evaluation/published"):  # fmt: skip
+    RERUN_PENDING[_path] += "; the pages name `oposm report <benchmark>`"
 
 
 def _covered(problem: str) -> str | None:

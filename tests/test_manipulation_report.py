@@ -1,4 +1,5 @@
-"""The manipulation report (pipeline/reporting/manipulation.py, scripts/manipulation_report.py):
+"""The manipulation report (pipeline/reporting/manipulation.py; `oposm report manipulation`,
+stages/manipulation_report.py):
 each dataset's agents on OGBench's five tasks, its verdicts by the common rules against OGBench's
 published table and between agents, the JSON a script can check."""
 
@@ -14,10 +15,9 @@ from pipeline.errors import UserError
 from pipeline.evaluation.published import OGBENCH_MANIPULATION
 from pipeline.reporting import manipulation
 from pipeline.reporting.common import FAILS, HOLDS, INCONCLUSIVE, rate
+from stages import manipulation_report
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "scripts"))
-import manipulation_report  # noqa: E402
 
 
 def _row(successes: int, n: int) -> dict:
@@ -153,7 +153,7 @@ def test_a_corrupt_report_is_a_one_line_error_naming_it(tmp_path):
     bad.parent.mkdir(parents=True)
     bad.write_text("{not json")
     result = subprocess.run(
-        [sys.executable, str(ROOT / "scripts/manipulation_report.py"), "dataset",
+        [sys.executable, str(ROOT / "cli.py"), "report", "manipulation", "dataset",
          "cube-single-play", str(tmp_path / "cs"), "--out", str(tmp_path / "results/cs.json")],
         capture_output=True, text=True,
     )  # fmt: skip

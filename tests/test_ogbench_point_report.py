@@ -1,5 +1,5 @@
-"""scripts/ogbench_point_report.py: runs' deploy reports -> the table beside OGBench's, verdicts,
-and one-line errors for a wrong run."""
+"""`oposm report ogbench-point` (stages/ogbench_point_report.py): runs' deploy reports -> the
+table beside OGBench's, verdicts, and one-line errors for a wrong run."""
 
 import json
 import subprocess
@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-SCRIPT = ROOT / "scripts/ogbench_point_report.py"
+REPORT = [sys.executable, str(ROOT / "cli.py"), "report", "ogbench-point"]
 
 
 def _rate(successes: int, n: int) -> dict:
@@ -40,7 +40,7 @@ def test_the_report_puts_runs_beside_ogbench_with_a_verdict(tmp_path):
     runs += ["--run", f"medium-stitch/sub={stitch}"]
     command = ["--command", "uv run oposm deploy ...", "--out", str(out)]
     command += ["--machine", "the first box"]
-    subprocess.run([sys.executable, str(SCRIPT), *runs, *command], check=True, cwd=ROOT)
+    subprocess.run([*REPORT, *runs, *command], check=True, cwd=ROOT)
     text = (out / "ogbench-point.md").read_text()
     assert "| medium | sub | 100 [93, 100] | 100 [93, 100] | 98 [90, 100] |" in text
     assert "| **100 [98, 100]** | 250 |" in text  # 249 of 250
@@ -52,7 +52,7 @@ def test_the_report_puts_runs_beside_ogbench_with_a_verdict(tmp_path):
     assert "- medium: ours 100 [98, 100], OGBench's 9 ± 6; difference [" in text
     assert "| medium-stitch | 23 ± 18 | 70 ± 14 | 21 ± 9 | 80 ± 12 | 0 ± 1 | 74 ± 6 |" in text
     assert "- medium-stitch: **does not hold**: sub 80 [75, 84] vs SAW 87 ± 4 " in text
-    assert "Made by `scripts/ogbench_point_report.py`" in text and "code at commit" in text
+    assert "Made by `oposm report ogbench-point`" in text and "code at commit" in text
     data = json.loads((out / "ogbench-point.json").read_text())
     assert [r["label"] for r in data["runs"]] == ["sub", "plain", "GCBC (ours)", "sub"]
     assert data["runs"][2]["agent"] == "gcbc" and data["runs"][2]["dataset"] == "medium"
@@ -68,7 +68,7 @@ def test_the_report_puts_runs_beside_ogbench_with_a_verdict(tmp_path):
     again += ["--keep", "--command", "uv run oposm deploy --run better", "--out", str(out)]
     teleport = _run(tmp_path / "teleport", [30] * 5)  # no published row to compare with
     again += ["--run", f"teleport/sub={teleport}"]
-    subprocess.run([sys.executable, str(SCRIPT), *again], check=True, cwd=ROOT)
+    subprocess.run([*REPORT, *again], check=True, cwd=ROOT)
     data = json.loads((out / "ogbench-point.json").read_text())
     labels = ["sub", "plain", "GCBC (ours)", "sub", "new", "sub"]
     assert [r["label"] for r in data["runs"]] == labels
@@ -94,7 +94,7 @@ def test_a_run_that_is_not_of_the_ogbench_tasks_is_a_one_line_error(tmp_path):
             }
         )  # fmt: skip
     )
-    args = [sys.executable, str(SCRIPT), "--run", f"medium/x={root}", "--out", str(tmp_path / "o")]
+    args = [*REPORT, "--run", f"medium/x={root}", "--out", str(tmp_path / "o")]
     got = subprocess.run(args, capture_output=True, text=True, cwd=ROOT)
     assert got.returncode == 1
     assert got.stderr.strip().count("\n") == 0 and "deploy.tasks: [ogbench]" in got.stderr

@@ -105,7 +105,7 @@ def test_the_stamp_names_the_commit_machine_and_the_dvc_lock(tmp_path):
 def test_the_committed_reports_are_what_their_json_renders_to():
     """results/experiments.md and results/ogbench-point.md: edit the code, not the text."""
     from pipeline.reporting.ogbench_point import published_json, render
-    from stages.results import markdown
+    from stages.experiments_report import markdown
 
     results = json.loads((ROOT / "results/experiments.json").read_text())
     assert markdown(results) == (ROOT / "results/experiments.md").read_text()

@@ -1,4 +1,4 @@
-"""`oposm results`: the experiments' deploy reports -> results/ with a verdict per claim."""
+"""`oposm report experiments`: the experiments' deploy reports -> results/, a verdict per claim."""
 
 import json
 import subprocess
@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 
 from cli import app
 from pipeline.evaluation.proportions import difference_interval, wilson_interval
-from stages.results import collect, markdown, plot_rows, run
+from stages.experiments_report import collect, markdown, plot_rows, run
 
 ROOT = Path(__file__).resolve().parents[1]
 runner = CliRunner()
@@ -121,9 +121,14 @@ def test_run_writes_the_report_json_and_plot_csvs(experiments, tmp_path):
 
 def test_cli_prints_verdicts_and_refuses_a_broken_report(experiments, tmp_path):
     params, data = experiments
-    args = ["results", "--experiments", str(params), "--repo", str(data)]
+    args = ["report", "experiments", "--experiments", str(params), "--repo", str(data)]
     result = runner.invoke(app, [*args, "--out", str(tmp_path / "r")])
     assert result.exit_code == 0, result.output
+    alias = ["results", *args[2:], "--out", str(tmp_path / "alias")]  # its name before `report`
+    assert runner.invoke(app, alias).exit_code == 0
+    assert (tmp_path / "alias/experiments.md").read_bytes() == (
+        tmp_path / "r/experiments.md"
+    ).read_bytes()
     assert "holds  OPOSM reaches random goals in maze2d-medium" in result.output
     (data / "data/runs/experiments/reports/deploy/report.json").write_text("{")
     result = runner.invoke(app, [*args, "--out", str(tmp_path / "r2")])

@@ -423,7 +423,7 @@ def render(results: Mapping[str, Any]) -> str:
     expert = results["expert"]
     made = ("Made by `uv run dvc repro experiments/antmaze/dvc.yaml` (each maze's commands in "
             "its section)" if results["stamp"].get("dvc") else
-            "Made by `scripts/antmaze_report.py` from the mazes' reports")  # fmt: skip
+            "Made by `oposm report antmaze page` from the mazes' reports")  # fmt: skip
     lines = [
         "# OGBench ant mazes: OPOSM beside OGBench's published table and the paper's",
         "",

@@ -269,7 +269,7 @@ _WORDS = {HOLDS: "holds", FAILS: "does not hold", INCONCLUSIVE: "inconclusive"}
 def render(results: Mapping[str, Any]) -> str:
     made = ("Made by `uv run dvc repro experiments/manipulation/dvc.yaml` (each dataset's "
             "commands in its section)" if results["stamp"].get("dvc") else
-            "Made by `scripts/manipulation_report.py` from the datasets' reports")  # fmt: skip
+            "Made by `oposm report manipulation page` from the datasets' reports")  # fmt: skip
     lines = [
         "# OGBench manipulation: OPOSM beside OGBench's published table",
         "",

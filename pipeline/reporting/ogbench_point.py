@@ -8,7 +8,7 @@ tasks: its agent (oposm, or the run's only agent, e.g. gcbc) per task and pooled
 is the maze for its navigate dataset (`medium`, `teleport`) or the maze and `-stitch` for its stitch
 dataset (`medium-stitch`).
 
-Two ways to make the report (`scripts/ogbench_point_report.py` is the command line of both):
+Two ways to make the report (`oposm report ogbench-point` is the command line of both):
 
 - from run folders named one by one (`collect_run`, `write`): the rows a session ran by hand;
 - from the DVC pipeline `experiments/ogbench/dvc.yaml` and its vars file
@@ -186,7 +186,7 @@ def render(
         "Made by `uv run dvc repro experiments/ogbench/dvc.yaml` (every row's stage and command "
         "at the end)"
         if stamp.get("dvc")
-        else "Made by `scripts/ogbench_point_report.py` from the runs' deploy reports (the "
+        else "Made by `oposm report ogbench-point` from the runs' deploy reports (the "
         "commands that produced them at the end)"
     )
     lines = [

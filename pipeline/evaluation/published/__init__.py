@@ -4,7 +4,8 @@ are); docs/references.md shows them with their protocols:
 
 - `oposm_paper.toml`, the OPOSM paper: table 1 and its LLP column, table 3 (EM against naive VI),
   table 4 with its LLP column and FrankaKitchen rows, figure 5, the seconds per plan and the
-  episodes behind its maze2d rates (`oposm results`, results/antmaze.md, results/manipulation.md);
+  episodes behind its maze2d rates (`oposm report experiments`, results/antmaze.md,
+  results/manipulation.md);
 - `ogbench.toml`, OGBench (Park et al., ICLR 2025): its methods, seeds, locomotion rows (the point
   and ant mazes) and manipulation rows (results/ogbench-point.md, results/antmaze.md,
   results/manipulation.md);

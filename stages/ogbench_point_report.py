@@ -1,10 +1,10 @@
 """results/ogbench-point.md + .json: OPOSM under OGBench's protocol on its point mazes, beside
-OGBench's published table (issue 18). The command line of `pipeline.reporting.ogbench_point`.
+OGBench's published table. The command line of `pipeline.reporting.ogbench_point`.
 
 From the DVC pipeline (what `uv run dvc repro experiments/ogbench/dvc.yaml` runs):
 
-    python scripts/ogbench_point_report.py --vars experiments/ogbench/params.yaml --rows medium
-    python scripts/ogbench_point_report.py --vars experiments/ogbench/params.yaml --out results
+    oposm report ogbench-point --vars experiments/ogbench/params.yaml --rows medium
+    oposm report ogbench-point --vars experiments/ogbench/params.yaml --out results
 
 (the first writes one data root's rows, `<data>/rows/medium.json`; the second the report from
 every root's rows that exist.)
@@ -15,7 +15,7 @@ run's only agent, e.g. gcbc). DATASET is the maze for its navigate dataset (`med
 `teleport`) or the maze and `-stitch` for its stitch dataset (`medium-stitch`). `--command` lists
 the commands that produced them, in order; `--keep` starts from the existing report's rows.
 
-    uv run python scripts/ogbench_point_report.py \
+    uv run oposm report ogbench-point \
         --run "medium/OPOSM + subgoals=data/ogb/medium/runs/ogb50-subgoals" \
         --run "medium/OPOSM (paper's planner)=data/ogb/medium/runs/ogb50-plain" \
         --command "uv run oposm ingest -p params-ogbench-pointmaze-medium.yaml ..."
@@ -24,7 +24,6 @@ the commands that produced them, in order; `--keep` starts from the existing rep
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 from pipeline.errors import UserError
@@ -64,8 +63,9 @@ def _from_dvc(args: argparse.Namespace) -> None:
         print(f"not run: {', '.join(found['not_run'])}")
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv: list[str] | None = None, prog: str | None = None) -> None:
+    """The command line (`oposm report ogbench-point ...`)."""
+    parser = argparse.ArgumentParser(prog=prog, description=__doc__.splitlines()[0])
     parser.add_argument("--run", action="append", default=[], help="DATASET/LABEL=RUN_DIR (repeat)")
     parser.add_argument("--command", action="append", default=[], help="a command run (repeat)")
     parser.add_argument(
@@ -82,18 +82,10 @@ def main() -> None:
         "--vars", type=Path, help="the DVC pipeline's vars file (experiments/ogbench/params.yaml)"
     )
     parser.add_argument("--rows", metavar="ROOT", help="with --vars: write one data root's rows")
-    args = parser.parse_args()
-    try:
-        if args.vars is not None:
-            _from_dvc(args)
-        elif args.rows:
-            raise UserError("--rows needs --vars")
-        else:
-            _from_runs(args)
-    except UserError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        sys.exit(1)
-
-
-if __name__ == "__main__":
-    main()
+    args = parser.parse_args(argv)
+    if args.vars is not None:
+        _from_dvc(args)
+    elif args.rows:
+        raise UserError("--rows needs --vars")
+    else:
+        _from_runs(args)

@@ -2,18 +2,18 @@
 `experiments/antmaze/dvc.yaml` run them:
 
     # one maze's report, from its data root:
-    python scripts/antmaze_report.py maze large data/experiments/antmaze/large \
+    oposm report antmaze maze large data/experiments/antmaze/large \
         --notes experiments/antmaze/notes.json --lock experiments/antmaze/dvc.lock \
         --out results/antmaze/large.json
     # a maze's mass sweep (paper figure 5), from the runs mass<...> of its data root:
-    python scripts/antmaze_report.py figure5 large data/experiments/antmaze/large \
+    oposm report antmaze figure5 large data/experiments/antmaze/large \
         --lock experiments/antmaze/dvc.lock --out results/antmaze/large-figure5.json
     # a maze's table 3 (EM against naive VI), from the runs table3-<method>-seed<seed>:
-    python scripts/antmaze_report.py table3 large data/experiments/antmaze/large \
+    oposm report antmaze table3 large data/experiments/antmaze/large \
         --e-kl closed_form --lock experiments/antmaze/dvc.lock \
         --out results/antmaze/large-table3.json
     # the page, results/antmaze.md + .json, from the mazes' reports:
-    python scripts/antmaze_report.py page results/antmaze/large.json [...] \
+    oposm report antmaze page results/antmaze/large.json [...] \
         [--figure5 results/antmaze/large-figure5.json ...] \
         [--table3 results/antmaze/large-table3.json ...] --out results
 """
@@ -21,7 +21,6 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 from pipeline.errors import UserError
@@ -85,8 +84,9 @@ def _page(args: argparse.Namespace) -> None:
     print(f"wrote {args.out / 'antmaze.md'} and antmaze.json")
 
 
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv: list[str] | None = None, prog: str | None = None) -> None:
+    """The command line (`oposm report antmaze ...`): `argv`, its subcommand first."""
+    parser = argparse.ArgumentParser(prog=prog, description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     maze = sub.add_parser("maze", help="one maze's report from its data root")
     maze.add_argument("name", help=f"one of {', '.join(antmaze.MAZES)}")
@@ -114,10 +114,3 @@ def main(argv: list[str] | None = None) -> None:
     page.add_argument("--out", type=Path, default=ROOT / "results")
     args = parser.parse_args(argv)
     {"maze": _maze, "figure5": _figure5, "table3": _table3, "page": _page}[args.command](args)
-
-
-if __name__ == "__main__":
-    try:
-        main()
-    except UserError as exc:  # a corrupt report or a bad argument: one line, no traceback
-        sys.exit(f"error: {exc}")

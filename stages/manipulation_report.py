@@ -2,22 +2,22 @@
 `experiments/manipulation/dvc.yaml` run them:
 
     # one dataset's report, from its data root:
-    python scripts/manipulation_report.py dataset cube-single-play \
+    oposm report manipulation dataset cube-single-play \
         data/experiments/manipulation/cube-single-play \
         --notes experiments/manipulation/notes/cube-single-play.json \
         --lock experiments/manipulation/dvc.lock \
         --out results/manipulation/cube-single-play.json
     # one dataset's ladder (where object moves fail), from its data root:
-    python scripts/manipulation_report.py ladder cube-double-play \
+    oposm report manipulation ladder cube-double-play \
         data/experiments/manipulation/cube-double-play \
         --out results/manipulation/cube-double-play-ladder.json
     # one variant of OPOSM on a dataset (its run folder runs/<run>/), from the data root:
-    python scripts/manipulation_report.py variant cube-double-play \
+    oposm report manipulation variant cube-double-play \
         data/experiments/manipulation/cube-double-play --run z256 --label "oposm z256" \
         --what "OPOSM at the paper's model sizes" --settings "-S train.z_dim=256 ..." \
         --out results/manipulation/cube-double-play-z256.json
     # the page, results/manipulation.md + .json, from the datasets' reports, ladders, variants:
-    python scripts/manipulation_report.py page results/manipulation/<dataset>.json ... \
+    oposm report manipulation page results/manipulation/<dataset>.json ... \
         --ladders results/manipulation/cube-double-play-ladder.json \
         --variants results/manipulation/cube-double-play-z256.json --out results
 """
@@ -25,7 +25,6 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 from pipeline.errors import UserError
@@ -82,8 +81,9 @@ def _page(args: argparse.Namespace) -> None:
     print(f"wrote {args.out / 'manipulation.md'} and manipulation.json")
 
 
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv: list[str] | None = None, prog: str | None = None) -> None:
+    """The command line (`oposm report manipulation ...`): `argv`, its subcommand first."""
+    parser = argparse.ArgumentParser(prog=prog, description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     one = sub.add_parser("dataset", help="one dataset's report from its data root")
     one.add_argument("name", help=f"one of {', '.join(manipulation.DATASETS)}")
@@ -112,10 +112,3 @@ def main(argv: list[str] | None = None) -> None:
     page.add_argument("--out", type=Path, default=ROOT / "results")
     args = parser.parse_args(argv)
     {"dataset": _dataset, "ladder": _ladder, "variant": _variant, "page": _page}[args.command](args)
-
-
-if __name__ == "__main__":
-    try:
-        main()
-    except UserError as exc:  # a corrupt report or a bad argument: one line, no traceback
-        sys.exit(f"error: {exc}")

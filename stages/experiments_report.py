@@ -1,5 +1,5 @@
-"""Results stage (`oposm results`, the last stage of experiments/dvc.yaml): the paper's experiments
-beside the paper's numbers, one verdict per claim.
+"""The paper's experiments page (`oposm report experiments`, the last stage of
+experiments/dvc.yaml): the paper's experiments beside the paper's numbers, one verdict per claim.
 
 Reads the deploy reports the experiments pipeline wrote (`<root>/runs/experiments/` per maze,
 `<root>/runs/mass-<factor>/` per mass factor; the roots are in `experiments/params.yaml`) and
