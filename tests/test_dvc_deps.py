@@ -121,6 +121,21 @@ def _run(repo: Path, *args: str) -> str:
     return out.stdout + out.stderr
 
 
+def test_a_renamed_entry_point_keeps_its_arguments():
+    """`--record` writes a stage's new command only where the locked one, its entry point renamed
+    by COMMAND_MOVES, is exactly it: the same arguments after it."""
+    old = "python scripts/antmaze_report.py page results/antmaze/medium.json --out results"
+    assert (
+        deps.moved_command(old)
+        == "oposm report antmaze page results/antmaze/medium.json --out results"
+    )
+    assert deps.moved_command("oposm results") == "oposm report experiments"
+    assert deps.moved_command("oposm resultsx --y") == "oposm resultsx --y"  # not a prefix word
+    assert deps.moved_command("oposm train -S a=1") == "oposm train -S a=1"
+    for _old, new in deps.COMMAND_MOVES:  # every new entry point is a file the scan can read
+        assert deps.entry_point(new + " x").exists(), new
+
+
 @pytest.mark.slow  # the real dvc, in a repository of its own
 def test_record_re_expresses_unchanged_code_and_keeps_a_change_stale(tmp_path):
     """A lock listing a package's files, its dvc.yaml now the package's folder: `record` writes
