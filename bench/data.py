@@ -83,7 +83,7 @@ def _write_minari(mcap: Path, dataset_id: str) -> None:
     import minari
     from minari.data_collector import EpisodeBuffer
 
-    from pipeline.envs.maze import register_envs
+    from pipeline.envs.physics import register_envs
     from pipeline.recording import iter_episodes, read_info
 
     info = read_info(mcap)

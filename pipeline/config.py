@@ -20,8 +20,8 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from pipeline.envs.expert import ExpertConfig
 from pipeline.envs.ids import MANIPSPACE_ENVS, OGBENCH_MAZES, SUPPORTED_ENVS
+from pipeline.envs.maze.expert import ExpertConfig
 from pipeline.errors import UserError
 
 

@@ -16,9 +16,9 @@ from typing import Any
 
 from pipeline.ant_expert.actor import load_actor
 from pipeline.config import Params
-from pipeline.envs.expert import ExpertConfig
 from pipeline.envs.kitchen import KitchenSpec
 from pipeline.envs.manipspace.env import ManipSpaceSpec
+from pipeline.envs.maze.expert import ExpertConfig
 from pipeline.envs.ogbench import OGBenchMazeSpec
 from pipeline.envs.ogbench_oracle import POINT_NOISE, OGBenchOracleAgent
 from pipeline.envs.perturb import scale_mass

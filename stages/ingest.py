@@ -10,10 +10,10 @@ from pathlib import Path
 
 from pipeline.config import Params
 from pipeline.dataset import DatasetInfo, Episode
-from pipeline.envs.checks import DatasetReport, check_maze_dataset, raise_for_problems
 from pipeline.envs.disturbance import Pushes
-from pipeline.envs.generate import dataset_info, generate_episodes
 from pipeline.envs.manipspace.env import is_manipspace
+from pipeline.envs.maze.checks import DatasetReport, check_maze_dataset, raise_for_problems
+from pipeline.envs.maze.generate import dataset_info, generate_episodes
 from pipeline.envs.spec import check_physics_dim
 from pipeline.errors import UserError
 from pipeline.paths import Paths

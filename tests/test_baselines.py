@@ -9,7 +9,7 @@ from factories import dynamics_config, llp_config, make_info, make_skill_episode
 
 from pipeline.config import BCParams, GCBCParams, LLPParams
 from pipeline.envs.batch import BatchSim
-from pipeline.envs.expert import ExpertConfig
+from pipeline.envs.maze.expert import ExpertConfig
 from pipeline.envs.spec import PointMazeSpec
 from pipeline.errors import UserError
 from pipeline.evaluation.episodes import RunConfig, run_episodes

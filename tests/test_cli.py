@@ -219,8 +219,8 @@ def _wrong_physics_source(params, progress):
 
     import numpy as np
 
-    from pipeline.envs.expert import ExpertConfig
-    from pipeline.envs.generate import dataset_info, generate_episodes
+    from pipeline.envs.maze.expert import ExpertConfig
+    from pipeline.envs.maze.generate import dataset_info, generate_episodes
 
     cfg, expert = params.ingest, ExpertConfig()
     info = dataset_info(cfg.env_id, cfg.name, 0, expert, cfg.episodes, cfg.episode_steps)

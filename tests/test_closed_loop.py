@@ -10,8 +10,8 @@ import pytest
 import torch
 
 from pipeline.envs.batch import BatchSim
-from pipeline.envs.expert import ExpertConfig, WaypointExpert
-from pipeline.envs.maze import make_maze_env, maze_layout
+from pipeline.envs.maze.env import make_maze_env, maze_layout
+from pipeline.envs.maze.expert import ExpertConfig, WaypointExpert
 from pipeline.envs.spec import PointMazeSpec
 from pipeline.evaluation.episodes import RunConfig, run_episodes
 from pipeline.evaluation.tasks import MazeTasks

@@ -16,7 +16,7 @@ from typer.testing import CliRunner
 
 from cli import app
 from pipeline.envs.batch import BatchSim
-from pipeline.envs.maze import layout_cell, make_maze_env
+from pipeline.envs.maze.env import layout_cell, make_maze_env
 from pipeline.envs.spec import PointMazeSpec
 from pipeline.errors import UserError
 from pipeline.evaluation.episodes import EpisodeResult, RunConfig, run_episodes

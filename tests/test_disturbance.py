@@ -10,10 +10,10 @@ from typer.testing import CliRunner
 
 from cli import app
 from pipeline.envs.batch import BatchSim
-from pipeline.envs.checks import check_maze_dataset
 from pipeline.envs.disturbance import Pushes, draw_force, push_rng
-from pipeline.envs.expert import ExpertConfig
-from pipeline.envs.generate import dataset_info, generate_episodes
+from pipeline.envs.maze.checks import check_maze_dataset
+from pipeline.envs.maze.expert import ExpertConfig
+from pipeline.envs.maze.generate import dataset_info, generate_episodes
 from pipeline.envs.spec import PointMazeSpec
 from pipeline.errors import UserError
 

@@ -9,10 +9,8 @@ import numpy as np
 import pytest
 
 from pipeline.dataset import Episode
-from pipeline.envs.checks import check_maze_dataset, raise_for_problems
-from pipeline.envs.expert import ExpertConfig
-from pipeline.envs.generate import dataset_info, generate_episodes
-from pipeline.envs.maze import (
+from pipeline.envs.maze.checks import check_maze_dataset, raise_for_problems
+from pipeline.envs.maze.env import (
     SUPPORTED_ENVS,
     cell_to_xy,
     free_cells,
@@ -24,6 +22,8 @@ from pipeline.envs.maze import (
     set_physics_state,
     xy_to_cell,
 )
+from pipeline.envs.maze.expert import ExpertConfig
+from pipeline.envs.maze.generate import dataset_info, generate_episodes
 from pipeline.errors import UserError
 
 ENV_ID = "PointMaze_Medium-v3"

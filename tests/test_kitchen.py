@@ -29,7 +29,7 @@ from pipeline.envs.kitchen import (
     patch_mujoco_utils,
     write_kitchen_minari,
 )
-from pipeline.envs.maze import PHYSICS_SPEC
+from pipeline.envs.physics import PHYSICS_SPEC
 from pipeline.errors import UserError
 
 # gymnasium's passive checker warns that `desired_goal` is the same dict at every step (it is).

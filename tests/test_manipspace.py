@@ -25,7 +25,7 @@ from pipeline.envs.manipspace.env import (
     puzzle_toggles,
 )
 from pipeline.envs.manipspace.solver import Subtask, oracle_info
-from pipeline.envs.maze import PHYSICS_SPEC
+from pipeline.envs.physics import PHYSICS_SPEC
 from pipeline.errors import UserError
 
 

@@ -16,7 +16,7 @@ from typer.testing import CliRunner
 
 from cli import app
 from pipeline.envs.batch import BatchSim
-from pipeline.envs.maze import PHYSICS_SPEC, layout_cell
+from pipeline.envs.maze.env import layout_cell
 from pipeline.envs.ogbench import (
     OGBENCH_MAZES,
     make_ogbench_env,
@@ -25,6 +25,7 @@ from pipeline.envs.ogbench import (
     ogbench_tasks,
 )
 from pipeline.envs.ogbench_oracle import BFSOracle, OGBenchOracleAgent
+from pipeline.envs.physics import PHYSICS_SPEC
 from pipeline.envs.spec import make_env_spec
 from pipeline.errors import UserError
 from pipeline.evaluation.episodes import RunConfig, run_episodes

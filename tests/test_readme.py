@@ -309,7 +309,7 @@ def test_readme_ingest_examples_of_other_data_name_their_dataset():
 
 
 def test_the_goal_in_a_wall_example_is_a_wall_of_the_default_maze():
-    from pipeline.envs.maze import layout_cell
+    from pipeline.envs.maze.env import layout_cell
     from pipeline.envs.spec import make_env_spec
 
     goals = [o.split("=", 1)[1] for o in readme_overrides() if o.startswith("deploy.goal=")]
@@ -583,8 +583,8 @@ def _runs_here(args: list[str]) -> bool:
 
 def _write_d4rl_file(args: list[str]) -> None:
     """The hdf5 file a README D4RL import names, made from a tiny generated dataset of its maze."""
-    from pipeline.envs.expert import ExpertConfig
-    from pipeline.envs.generate import dataset_info, generate_episodes
+    from pipeline.envs.maze.expert import ExpertConfig
+    from pipeline.envs.maze.generate import dataset_info, generate_episodes
     from pipeline.sources import write_d4rl
 
     sets = dict(a.split("=", 1) for a in args if "=" in a)

@@ -20,16 +20,10 @@ import yaml
 from typer.testing import CliRunner
 
 from cli import app
-from pipeline.envs.expert import ExpertConfig
-from pipeline.envs.generate import dataset_info, generate_episodes
-from pipeline.envs.maze import (
-    cell_to_xy,
-    free_cells,
-    make_maze_env,
-    maze_layout,
-    maze_of,
-    register_envs,
-)
+from pipeline.envs.maze.env import cell_to_xy, free_cells, make_maze_env, maze_layout, maze_of
+from pipeline.envs.maze.expert import ExpertConfig
+from pipeline.envs.maze.generate import dataset_info, generate_episodes
+from pipeline.envs.physics import register_envs
 from pipeline.errors import UserError
 from pipeline.recording import read_episodes, read_info, write_dataset
 from pipeline.sources import export_lerobot, read_d4rl, read_lerobot, read_minari

@@ -17,8 +17,8 @@ from typer.testing import CliRunner
 from cli import app
 from pipeline.config import DynamicsParams
 from pipeline.envs.batch import BatchSim
-from pipeline.envs.expert import ExpertConfig
-from pipeline.envs.generate import dataset_info, generate_episodes
+from pipeline.envs.maze.expert import ExpertConfig
+from pipeline.envs.maze.generate import dataset_info, generate_episodes
 from pipeline.envs.spec import PointMazeSpec
 from pipeline.errors import UserError
 from pipeline.evaluation.open_loop import choose_starts, restore, tawm_predictive

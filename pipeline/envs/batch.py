@@ -101,7 +101,7 @@ class BatchSim:
 
         The mazes' state (`mjSTATE_FULLPHYSICS`) leaves out the solver's warm start; it is zeroed
         (as after a reset), so stepping on reproduces the recording exactly away from walls and
-        to round-off at them (`pipeline.envs.maze.set_physics_state`). The manipulation envs'
+        to round-off at them (`pipeline.envs.maze.env.set_physics_state`). The manipulation envs'
         state holds everything (`pipeline.envs.manipspace.env`): stepping on is bit for bit.
         """
         physics = np.asarray(physics, dtype=np.float64)

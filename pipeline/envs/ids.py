@@ -4,7 +4,7 @@ The params models (`pipeline.config`) validate env ids and the evaluation code n
 with these; importing them must not start gymnasium, MuJoCo or torch, so that loading
 `params.yaml` (`oposm params`, every stage's first step) stays light. The simulator modules
 (`maze`, `ogbench`, `manipspace`) import their ids from here and keep them under their own names,
-so `pipeline.envs.maze.SUPPORTED_ENVS` and the like still work.
+so `pipeline.envs.maze.env.SUPPORTED_ENVS` and the like still work.
 """
 
 from __future__ import annotations

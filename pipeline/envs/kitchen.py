@@ -72,7 +72,7 @@ import gymnasium
 import mujoco
 import numpy as np
 
-from pipeline.envs.maze import PHYSICS_SPEC, register_envs
+from pipeline.envs.physics import PHYSICS_SPEC, register_envs
 from pipeline.errors import UserError
 
 KITCHEN_ENV_ID = "FrankaKitchen-v1"

@@ -46,7 +46,7 @@ import mujoco
 import numpy as np
 
 from pipeline.envs.ids import OGBENCH_MAZES
-from pipeline.envs.maze import PHYSICS_SPEC, restore_physics
+from pipeline.envs.physics import PHYSICS_SPEC, restore_physics
 from pipeline.errors import UserError
 
 # Step limit of an evaluation episode (the registered `max_episode_steps` of these ids).
@@ -102,7 +102,7 @@ def reference_env(env_id: str) -> gymnasium.Env:
 
 
 def ogbench_layout(env: gymnasium.Env, radius: float) -> dict[str, Any]:
-    """The maze in `pipeline.envs.maze.maze_layout`'s shape, rows listed bottom-up (see module).
+    """The maze in `pipeline.envs.maze.env.maze_layout`'s shape, rows listed bottom-up (see module).
 
     Extra keys: `ogbench_maze_map` (OGBench's own rows) and `row_order` (how they relate).
     """

@@ -28,17 +28,16 @@ import numpy as np
 from pipeline.dataset import DatasetInfo
 from pipeline.envs.kitchen import KITCHEN_ENVS, is_kitchen, kitchen_spec
 from pipeline.envs.manipspace.env import MANIPSPACE_ENVS, is_manipspace, manipspace_spec
-from pipeline.envs.maze import (
-    PHYSICS_SPEC,
+from pipeline.envs.maze.env import (
     SUPPORTED_ENVS,
     make_maze_env,
     max_episode_steps,
     maze_layout,
     point_env,
-    restore_physics,
     step_point_mass,
 )
 from pipeline.envs.ogbench import OGBENCH_MAZES, OGBenchMazeSpec, is_ogbench_maze
+from pipeline.envs.physics import PHYSICS_SPEC, restore_physics
 from pipeline.errors import UserError
 
 # Every env id `make_env_spec` builds a simulator for.
@@ -60,7 +59,7 @@ class EnvSpec(Protocol):
             the plane; manipulation: the objects' positions and states).
         dt: Seconds per control step.
         max_episode_steps: Step limit of one evaluation episode.
-        layout: The maze (`pipeline.envs.maze.maze_layout`): walls, free cells, bounds.
+        layout: The maze (`pipeline.envs.maze.env.maze_layout`): walls, free cells, bounds.
         model: The nominal MuJoCo model.
     """
 
@@ -148,7 +147,7 @@ class PointMazeSpec:
         self, data: mujoco.MjData, state: np.ndarray, model: mujoco.MjModel | None = None
     ) -> None:
         """`[time, x, y, vx, vy]`; the solver's warm start zeroed, as after a reset
-        (`pipeline.envs.maze.set_physics_state`)."""
+        (`pipeline.envs.maze.env.set_physics_state`)."""
         restore_physics(model or self.model, data, state, PHYSICS_SPEC)
 
     def control_step(self, model: mujoco.MjModel, data: mujoco.MjData, action: np.ndarray) -> None:

@@ -43,7 +43,7 @@ def wall_rects(layout: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
     """Lower-left and upper-right corners `[W, 2]` of the wall cells of a `maze_layout` dict.
 
     Cell (row, col) spans x in [col s - x_c, (col + 1) s - x_c], y in [y_c - (row + 1) s,
-    y_c - row s] (gymnasium-robotics' convention; `pipeline.envs.maze.layout_cell` inverts it).
+    y_c - row s] (gymnasium-robotics' convention; `pipeline.envs.maze.env.layout_cell` inverts it).
     """
     s = float(layout["maze_size_scaling"])
     rows, cols = np.asarray(layout["wall_cells"], dtype=np.float64).reshape(-1, 2).T

@@ -14,7 +14,7 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 
-from pipeline.envs.expert import ExpertConfig, WaypointExpert
+from pipeline.envs.maze.expert import ExpertConfig, WaypointExpert
 from pipeline.model.policy import GaussianPolicy
 from pipeline.planning.noise import normal, problem_keys, substream
 

@@ -19,14 +19,9 @@ import numpy as np
 from tqdm import tqdm
 
 from pipeline.dataset import DatasetInfo, Episode
-from pipeline.envs.generate import ACTION_NAMES, ACTION_UNITS, STATE_NAMES, STATE_UNITS
-from pipeline.envs.maze import (
-    PHYSICS_SPEC,
-    SUPPORTED_ENVS,
-    make_maze_env,
-    maze_layout,
-    point_env,
-)
+from pipeline.envs.maze.env import SUPPORTED_ENVS, make_maze_env, maze_layout, point_env
+from pipeline.envs.maze.generate import ACTION_NAMES, ACTION_UNITS, STATE_NAMES, STATE_UNITS
+from pipeline.envs.physics import PHYSICS_SPEC
 from pipeline.errors import UserError
 
 log = logging.getLogger(__name__)

@@ -77,7 +77,7 @@ import mujoco
 import numpy as np
 
 from pipeline.envs.ids import MANIPSPACE_ENVS, PUZZLE_ENVS
-from pipeline.envs.maze import PHYSICS_SPEC
+from pipeline.envs.physics import PHYSICS_SPEC
 from pipeline.errors import UserError
 
 # Cubes per id (`MANIPSPACE_ENVS`; the scene has one cube, two buttons, a drawer, a window; a

@@ -16,8 +16,8 @@ from collections.abc import Iterable
 import numpy as np
 
 from pipeline.dataset import DatasetInfo, Episode
-from pipeline.envs.checks import DatasetReport
-from pipeline.envs.checks import _Walls as MazeWalls  # the maze checks' wall geometry
+from pipeline.envs.maze.checks import DatasetReport
+from pipeline.envs.maze.checks import _Walls as MazeWalls  # the maze checks' wall geometry
 from pipeline.envs.ogbench import ANT_HEALTHY_Z, OGBenchMazeSpec, ant_fallen
 from pipeline.sources.ogbench.info import ogbench_spec
 

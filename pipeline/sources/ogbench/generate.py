@@ -39,9 +39,9 @@ import numpy as np
 from pipeline.dataset import Episode
 from pipeline.devices import torch_threads
 from pipeline.envs.ant import global_seed
-from pipeline.envs.maze import PHYSICS_SPEC
 from pipeline.envs.ogbench import Teleports, make_ogbench_env
 from pipeline.envs.ogbench_oracle import BFSOracle
+from pipeline.envs.physics import PHYSICS_SPEC
 from pipeline.sources.common import Clock, ImportedDataset, with_progress
 from pipeline.sources.ogbench.expert import (
     Controller,

@@ -41,7 +41,6 @@ import mujoco
 import numpy as np
 
 from pipeline.dataset import DatasetInfo, Episode
-from pipeline.envs.checks import DatasetReport
 from pipeline.envs.manipspace.data import (
     NOISE,
     RECIPES,
@@ -63,6 +62,7 @@ from pipeline.envs.manipspace.env import (
     ManipSpaceSpec,
     manipspace_spec,
 )
+from pipeline.envs.maze.checks import DatasetReport
 from pipeline.errors import UserError
 from pipeline.sources.common import Clock, ImportedDataset, with_progress
 from pipeline.sources.ogbench.info import versions

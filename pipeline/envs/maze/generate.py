@@ -17,14 +17,9 @@ from tqdm import tqdm
 
 from pipeline.dataset import DatasetInfo, Episode
 from pipeline.envs.disturbance import Pushes, draw_force, push_rng, pushed_step
-from pipeline.envs.expert import ExpertConfig, WaypointExpert
-from pipeline.envs.maze import (
-    PHYSICS_SPEC,
-    make_maze_env,
-    maze_layout,
-    point_env,
-    step_point_mass,
-)
+from pipeline.envs.maze.env import make_maze_env, maze_layout, point_env, step_point_mass
+from pipeline.envs.maze.expert import ExpertConfig, WaypointExpert
+from pipeline.envs.physics import PHYSICS_SPEC
 from pipeline.errors import UserError
 
 STATE_NAMES = ["x", "y", "vx", "vy"]

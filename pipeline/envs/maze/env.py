@@ -8,10 +8,6 @@ gymnasium dynamics (checked in tests/test_envs.py).
 
 from __future__ import annotations
 
-import contextlib
-import functools
-import io
-import warnings
 from pathlib import Path
 from typing import Any
 
@@ -21,28 +17,13 @@ import numpy as np
 
 from pipeline.envs.ids import SUPPORTED_ENVS, Cell
 from pipeline.envs.ids import layout_cell as layout_cell  # also imported from here
+from pipeline.envs.physics import PHYSICS_SPEC, register_envs
 from pipeline.errors import UserError
 
 # `PointEnv.step` clips each velocity component to this before simulating (m/s).
 MAX_AXIS_SPEED = 5.0
 # Radius of the point mass' collision sphere in point.xml (m).
 AGENT_RADIUS = 0.1
-# MuJoCo state spec recorded per step: time, qpos, qvel (+ act, mocap, ...: empty here).
-PHYSICS_SPEC = mujoco.mjtState.mjSTATE_FULLPHYSICS
-
-
-@functools.cache
-def register_envs() -> None:
-    """Import gymnasium-robotics and register its envs, once, without its import-time noise.
-
-    gymnasium-robotics 1.4.2 prints an Adroit reward notice to stderr on import (via
-    farama-notifications) that does not concern PointMaze; it is swallowed here.
-    """
-    with warnings.catch_warnings(), contextlib.redirect_stderr(io.StringIO()):
-        warnings.simplefilter("ignore")
-        import gymnasium_robotics
-
-    gym.register_envs(gymnasium_robotics)
 
 
 def check_env_id(env_id: str) -> None:
@@ -158,17 +139,6 @@ def set_physics_state(env: gym.Env, state: np.ndarray) -> None:
     mujoco.mj_setState(pe.model, pe.data, state, PHYSICS_SPEC)
     pe.data.qacc_warmstart[:] = 0.0
     mujoco.mj_forward(pe.model, pe.data)
-
-
-def restore_physics(
-    model: mujoco.MjModel, data: mujoco.MjData, state: np.ndarray, mask: int = PHYSICS_SPEC
-) -> None:
-    """Put `data` in `state` (the `mask` components, `mjSTATE_FULLPHYSICS` by default) from a
-    fresh reset: everything the state leaves out (the solver's warm start, for the mazes) is as
-    after `mj_resetData`; then a forward pass for the derived quantities."""
-    mujoco.mj_resetData(model, data)
-    mujoco.mj_setState(model, data, state, mask)
-    mujoco.mj_forward(model, data)
 
 
 def step_point_mass(

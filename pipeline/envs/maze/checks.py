@@ -17,7 +17,7 @@ import numpy as np
 
 from pipeline.dataset import DatasetInfo, Episode
 from pipeline.envs.disturbance import AGENT_BODY, Pushes
-from pipeline.envs.maze import (
+from pipeline.envs.maze.env import (
     AGENT_RADIUS,
     MAX_AXIS_SPEED,
     SUPPORTED_ENVS,
