@@ -23,9 +23,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from pipeline.errors import UserError
 from pipeline.reporting import antmaze
-from pipeline.reporting.common import lock_commands, read, stamp
+from pipeline.reporting.common import lock_commands, read, read_all, stamp
 
 ROOT = Path(__file__).resolve().parents[1]
 PIPELINE = "uv run dvc repro experiments/antmaze/dvc.yaml"
@@ -65,20 +64,10 @@ def _table3(args: argparse.Namespace) -> None:
     print(f"wrote {args.out}")
 
 
-def _reports(paths: list[Path], stage: str) -> list[dict]:
-    reports = []
-    for path in paths:
-        report = read(path)
-        if report is None:
-            raise UserError(f"{path} does not exist; run its stage ({stage}) first")
-        reports.append(report)
-    return reports
-
-
 def _page(args: argparse.Namespace) -> None:
-    reports = _reports(args.reports, "maze@<maze>")
-    sweeps = _reports(args.figure5, "figure5")
-    tables = _reports(args.table3, "table3")
+    reports = read_all(args.reports, "maze@<maze>")
+    sweeps = read_all(args.figure5, "figure5")
+    tables = read_all(args.table3, "table3")
     expert = antmaze.expert_info(read(ROOT / "experts" / "ant" / "actor.json") or {})
     antmaze.write_page(args.out, antmaze.page(reports, expert, stamp(ROOT), sweeps, tables))
     print(f"wrote {args.out / 'antmaze.md'} and antmaze.json")

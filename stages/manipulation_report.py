@@ -29,7 +29,7 @@ from pathlib import Path
 
 from pipeline.errors import UserError
 from pipeline.reporting import manipulation, manipulation_ladder, manipulation_variant
-from pipeline.reporting.common import lock_commands, read, stamp
+from pipeline.reporting.common import lock_commands, read, read_all, stamp
 
 ROOT = Path(__file__).resolve().parents[1]
 PIPELINE = "uv run dvc repro experiments/manipulation/dvc.yaml"
@@ -62,20 +62,10 @@ def _variant(args: argparse.Namespace) -> None:
     print(f"wrote {args.out}")
 
 
-def _read_all(paths: list[Path], stage: str) -> list:
-    reports = []
-    for path in paths:
-        report = read(path)
-        if report is None:
-            raise UserError(f"{path} does not exist; run its stage ({stage}@<dataset>) first")
-        reports.append(report)
-    return reports
-
-
 def _page(args: argparse.Namespace) -> None:
-    reports = _read_all(args.reports, "dataset")
-    ladders = _read_all(args.ladders, "ladder")
-    variants = _read_all(args.variants, "variant")
+    reports = read_all(args.reports, "dataset@<dataset>")
+    ladders = read_all(args.ladders, "ladder@<dataset>")
+    variants = read_all(args.variants, "variant@<dataset>")
     results = manipulation.page(reports, stamp(ROOT), ladders, variants)
     manipulation.write_page(args.out, results)
     print(f"wrote {args.out / 'manipulation.md'} and manipulation.json")

@@ -246,6 +246,21 @@ def kept_share(by_factor: Mapping[Any, Mapping[str, Any]], nominal: float = 1.0)
 # --- what ran -----------------------------------------------------------------------------------
 
 
+def read_all(paths: list[Path], stage: str) -> list[Report]:
+    """The reports at `paths`, in order, for a page that needs every one of them.
+
+    Raises:
+        UserError: one is missing (naming it and the `stage` that writes it) or not valid JSON.
+    """
+    reports = []
+    for path in paths:
+        report = read(path)
+        if report is None:
+            raise UserError(f"{path} does not exist; run its stage ({stage}) first")
+        reports.append(report)
+    return reports
+
+
 def lock_commands(lock: Path, exclude: str = "report") -> list[str]:
     """The command of every stage a dvc.lock recorded (`exclude` left out), as
     `<cmd>   # <stage>`, in the lock's order."""
