@@ -277,7 +277,6 @@ def record(pipeline: str, root: Path = ROOT) -> list[str]:
                 if path in old:
                     continue
                 replaced = [p for p in gone if _overlap(p, path)]
-                moved = [p for p in gone if _same_file(old[p], today(path))]
                 if replaced:
                     if any(old[p].get("md5") != today(p) for p in replaced):
                         kept.update(replaced)  # what changed stays visible in the lock
@@ -286,11 +285,13 @@ def record(pipeline: str, root: Path = ROOT) -> list[str]:
                         )
                         continue
                     how = "unchanged since the lock"
-                elif moved:
-                    how = f"{moved[0]} moved here unchanged"
                 else:
-                    done.append(f"{pipeline}:{name}: {path} left new (the stage never ran it)")
-                    continue
+                    now = today(path)  # hashed once, against every entry no longer listed
+                    moved = next((p for p in gone if _same_file(old[p], now)), None)
+                    if moved is None:
+                        done.append(f"{pipeline}:{name}: {path} left new (the stage never ran it)")
+                        continue
+                    how = f"{moved} moved here unchanged"
                 dep.save()
                 saved = dep.dumpd()
                 added.append({k: saved[k] for k in LOCK_KEYS if k in saved})
