@@ -225,6 +225,14 @@ class TrainParams(_Section):
         "that holds or slips: one Gaussian's mean lies between them). The planner chains the "
         "most probable component's mean.",
     )
+    tawm_residual: bool = Field(
+        False,
+        description="false: the paper's TAWM, whose mean of s_T comes straight from (s_0, z). "
+        "true (not the paper's): the mean is s_0 plus the network's output (normalized units), "
+        "as a single-step model predicts a change: an object a skill does not touch is "
+        "predicted where it stands, where the paper's network must learn to copy it, and its "
+        "small copying errors add up over a chain of skills.",
+    )
     tawm_chain: int = Field(
         1,
         ge=1,

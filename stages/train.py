@@ -80,7 +80,8 @@ def model_config(cfg: TrainParams, segments: Segments) -> SkillModelConfig:
 def _unchanged_at_default(cfg: TrainParams) -> set[str]:
     """Keys added since states were first saved, left out at the value every earlier run had
     (the same computation), so those states still resume."""
-    return {"tawm_chain"} if cfg.tawm_chain == 1 else set()
+    keys = {"tawm_chain"} if cfg.tawm_chain == 1 else set()
+    return keys | ({"tawm_residual"} if not cfg.tawm_residual else set())
 
 
 def _fingerprint(cfg: TrainParams, segments_dir: Path, world_size: int) -> str:

@@ -105,6 +105,13 @@ NOT_RUN_YET: dict[str, tuple[tuple[str, ...], str]] = {
               for d in ("cube-single-play", "scene-play")),
         "OPOSM with a learned value on the datasets whose data roots are rebuilt first",
     ),
+    "experiments/antmaze/dvc.yaml": (
+        tuple(f"{stage}@medium-stitch" for stage in (
+            "ingest", "segment", "train", "dynamics", "gcbc", "validate", "deploy",
+            "deploy_random_goal", "deploy_gcbc", "deploy_expert", "maze",
+        )),
+        "antmaze-medium-stitch (OGBench's stitch recipe): its chain runs a stage at a time",
+    ),
 }  # fmt: skip
 
 
@@ -309,6 +316,9 @@ RERUN_PENDING |= {
 RERUN_PENDING["train.encoder"] = (
     "a new key of `train` at its default (gru, the paper's posterior): the same runs"
 )
+RERUN_PENDING["train.tawm_residual"] = (
+    "a new key of `train` at its default (false, the paper's TAWM mean): the same runs"
+)
 RERUN_PENDING["deploy.object_subtasks"] = (
     "a new key of `deploy` at its default (false, the paper's whole-goal plans): the same runs"
 )
@@ -316,8 +326,9 @@ RERUN_PENDING["deploy.object_subtasks"] = (
 # the rollout, the planner's networks and the validation metrics; with one component every
 # computation is the one before (tests/test_tawm_mixture.py, tests/test_planning.py).
 RERUN_PENDING |= {
-    path: "the mixture TAWM (train.tawm_components, 1 by default) and the conv posterior "
-    "(train.encoder, gru by default): the same computations"
+    path: "the mixture TAWM (train.tawm_components, 1 by default), the conv posterior "
+    "(train.encoder, gru by default) and the residual TAWM (train.tawm_residual, false by "
+    "default): the same computations"
     for path in ("pipeline/model", "pipeline/planning", "pipeline/training/losses.py")
 }  # fmt: skip
 # The Adam loop of the single-step model, BC and GCBC in one place (`training/keep_best.py`): the

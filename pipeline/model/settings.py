@@ -37,6 +37,7 @@ def skill_model_config(
         policy_ignore_dims=tuple(cfg.policy_ignore_dims),
         tawm_components=cfg.tawm_components,
         encoder=cfg.encoder,
+        tawm_residual=cfg.tawm_residual,
     )
 
 

@@ -56,6 +56,9 @@ class SkillModelConfig:
         encoder: The posterior's sequence network: "gru" (appendix C.1's bidirectional GRU)
             or "conv" (strided 1-D convolutions, `ConvEncoder`: about a third of the GRU's
             products and no step-by-step recurrence).
+        tawm_residual: p_psi's mean is s_0 plus the network's output (normalized units), so a
+            skill that leaves a dim alone predicts it unchanged by default; False: the paper's
+            mean of s_T straight from (s_0, z).
     """
 
     state_dim: Size
@@ -70,6 +73,7 @@ class SkillModelConfig:
     policy_ignore_dims: tuple[Count, ...] = ()
     tawm_components: Size = 1
     encoder: str = "gru"
+    tawm_residual: bool = False
 
     def __post_init__(self) -> None:
         ignore = tuple(sorted({int(d) for d in self.policy_ignore_dims}))
@@ -97,11 +101,14 @@ class SkillModelConfig:
         return self.action_low is not None
 
     def to_dict(self) -> dict:
-        """The fields, without `encoder` where it is the paper's GRU: a checkpoint's config.json
-        stays the bytes it was before the field existed (`load` reads its absence as "gru")."""
+        """The fields, without `encoder` where it is the paper's GRU and `tawm_residual` where
+        it is the paper's false: a checkpoint's config.json stays the bytes it was before the
+        fields existed (`load` reads their absence as the paper's)."""
         fields = asdict(self)
         if fields["encoder"] == "gru":
             del fields["encoder"]
+        if not fields["tawm_residual"]:
+            del fields["tawm_residual"]
         return fields
 
 
@@ -295,11 +302,12 @@ class SkillModel(nn.Module):
         Gaussian, or a mixture of them (`tawm_components`)."""
         x = torch.cat([s0_n, z], dim=-1)
         if self.config.tawm_components == 1:
-            return diag_normal(*self.tawm(x))
+            mean, std = self.tawm(x)
+            return diag_normal(self._from_start(mean, s0_n), std)
         means, stds, logits = self.tawm(x)
         return MixtureSameFamily(
             Categorical(logits=logits, validate_args=False),
-            diag_normal(means, stds),
+            diag_normal(self._from_start(means, s0_n[..., None, :]), stds),
             validate_args=False,
         )
 
@@ -312,15 +320,22 @@ class SkillModel(nn.Module):
         uniform draw per row, none for a single Gaussian)."""
         x = torch.cat([s0_n, z], dim=-1)
         if self.config.tawm_components == 1:
-            return self.tawm(x)
-        if generator is None:
-            return self.tawm.readout(x)
-        means, stds, logits = self.tawm(x)
-        u = torch.rand(logits.shape[:-1], generator=generator, device=generator.device)
-        cdf = logits.softmax(-1).cumsum(-1)
-        index = (u.to(cdf.device)[..., None] > cdf).sum(-1).clamp(max=logits.shape[-1] - 1)
-        index = index[..., None, None].expand(*means.shape[:-2], 1, means.shape[-1])
-        return means.gather(-2, index).squeeze(-2), stds.gather(-2, index).squeeze(-2)
+            mean, std = self.tawm(x)
+        elif generator is None:
+            mean, std = self.tawm.readout(x)
+        else:
+            means, stds, logits = self.tawm(x)
+            u = torch.rand(logits.shape[:-1], generator=generator, device=generator.device)
+            cdf = logits.softmax(-1).cumsum(-1)
+            index = (u.to(cdf.device)[..., None] > cdf).sum(-1).clamp(max=logits.shape[-1] - 1)
+            index = index[..., None, None].expand(*means.shape[:-2], 1, means.shape[-1])
+            mean, std = means.gather(-2, index).squeeze(-2), stds.gather(-2, index).squeeze(-2)
+        return self._from_start(mean, s0_n), std
+
+    def _from_start(self, mean: torch.Tensor, s0_n: torch.Tensor) -> torch.Tensor:
+        """The TAWM network's mean output as a mean of s_T: itself (the paper's), or added to
+        the start (`config.tawm_residual`)."""
+        return mean + s0_n if self.config.tawm_residual else mean
 
     # -- raw-unit interface (planning, validation, deployment) ----------------------------------
     @torch.no_grad()

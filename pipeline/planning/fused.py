@@ -56,6 +56,7 @@ class PlannerNets:
         self.tawm_in_b = first.bias.to(dtype)
         self.tawm_trunk2 = _weights(tawm.trunk[2], dtype)
         self.components = getattr(tawm, "components", 1)
+        self.residual = model.config.tawm_residual  # the mean is s_0 + the network's output
         mean_net = tawm.mean if self.components > 1 else tawm.head.mean
         self.tawm_head = [_weights(mean_net[0], dtype), _weights(mean_net[2], dtype)]
         if self.components > 1:  # the logits: the std network's last K outputs
@@ -101,7 +102,7 @@ class PlannerNets:
                            self.tawm_head[1][0]).float()  # fmt: skip
         std_in = torch.addmm(self.tawm_std[1][1], _relu_layer(h, self.tawm_std[0]),
                              self.tawm_std[1][0]).float()  # fmt: skip
-        return mean, F.softplus(std_in) + self.tawm_min_std
+        return self._from_start(mean, s), F.softplus(std_in) + self.tawm_min_std
 
     def tawm_mean(self, s: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         """Normalized `s [N, sd]`, skill `z [N, z]` -> the TAWM mean of s_T `[N, sd]` (float32)."""
@@ -109,9 +110,13 @@ class PlannerNets:
         mean = torch.addmm(self.tawm_head[1][1], _relu_layer(h, self.tawm_head[0]),
                            self.tawm_head[1][0]).float()  # fmt: skip
         if self.components == 1:
-            return mean
+            return self._from_start(mean, s)
         logits = torch.addmm(self.tawm_logits[1][1], _relu_layer(h, self.tawm_logits[0]),
                              self.tawm_logits[1][0])  # fmt: skip
         means = mean.unflatten(-1, (self.components, self.sd))
         index = logits.argmax(-1)[:, None, None].expand(-1, 1, self.sd)
-        return means.gather(1, index).squeeze(1)
+        return self._from_start(means.gather(1, index).squeeze(1), s)
+
+    def _from_start(self, mean: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+        """As `SkillModel._from_start`: the network's mean, or the start plus it (residual)."""
+        return mean + s.float() if self.residual else mean

@@ -192,7 +192,8 @@ class SkillPlanner:
 
     def _fused(self, cost: StateCost) -> bool:
         """Whether the Triton kernel computes this plan's rollout and cost (`config.kernel`)."""
-        if self.config.kernel != "triton" or self.model.config.tawm_components > 1:
+        model = self.model.config
+        if self.config.kernel != "triton" or model.tawm_components > 1 or model.tawm_residual:
             return False
         if self.config.uncertainty_weight:  # the kernel chains means only
             return False
