@@ -107,8 +107,8 @@ NOT_RUN_YET: dict[str, tuple[tuple[str, ...], str]] = {
     ),
     "experiments/antmaze/dvc.yaml": (
         tuple(f"{stage}@medium-stitch" for stage in (
-            "ingest", "segment", "train", "dynamics", "gcbc", "validate", "deploy",
-            "deploy_random_goal", "deploy_gcbc", "deploy_expert", "maze",
+            "ingest", "segment", "train", "dynamics", "bc", "gcbc", "validate", "deploy",
+            "deploy_random_goal", "deploy_llp", "deploy_gcbc", "deploy_expert", "maze",
         )),
         "antmaze-medium-stitch (OGBench's stitch recipe): its chain runs a stage at a time",
     ),
@@ -315,9 +315,6 @@ RERUN_PENDING |= {
 }  # fmt: skip
 RERUN_PENDING["train.encoder"] = (
     "a new key of `train` at its default (gru, the paper's posterior): the same runs"
-)
-RERUN_PENDING["train.tawm_residual"] = (
-    "a new key of `train` at its default (false, the paper's TAWM mean): the same runs"
 )
 RERUN_PENDING["deploy.object_subtasks"] = (
     "a new key of `deploy` at its default (false, the paper's whole-goal plans): the same runs"
