@@ -316,6 +316,9 @@ RERUN_PENDING |= {
 RERUN_PENDING["train.encoder"] = (
     "a new key of `train` at its default (gru, the paper's posterior): the same runs"
 )
+RERUN_PENDING["train.tawm_residual"] = (
+    "a new key of `train` at its default (false, the paper's TAWM mean): the same runs"
+)
 RERUN_PENDING["deploy.object_subtasks"] = (
     "a new key of `deploy` at its default (false, the paper's whole-goal plans): the same runs"
 )

@@ -143,11 +143,14 @@ def test_the_train_stage_runs_a_chained_tawm_and_one_skill_keeps_its_resume_key(
     segments_dir = paths.segments("skills")
     one = train._fingerprint(_stage_params().train, segments_dir, 1)
     two = train._fingerprint(_stage_params(tawm_chain=2).train, segments_dir, 1)
-    assert one != two
-    # at 1 the key is left out: the fingerprint of a state saved before the key existed
+    residual = train._fingerprint(_stage_params(tawm_residual=True).train, segments_dir, 1)
+    assert one != two and one != residual
+    # at their defaults (1, false) the keys are left out: a state saved before they existed
     before = {
         "state_format": 2,
-        "train": _stage_params().train.model_dump(exclude=train._BUDGET_KEYS | {"tawm_chain"}),
+        "train": _stage_params().train.model_dump(
+            exclude=train._BUDGET_KEYS | {"tawm_chain", "tawm_residual"}
+        ),
         "segments": json.loads((segments_dir / "segments.json").read_text()),
         "processes": 1,
         "cpu_math": cpu_math.mode(),
