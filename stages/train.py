@@ -77,11 +77,14 @@ def model_config(cfg: TrainParams, segments: Segments) -> SkillModelConfig:
     return skill_model_config(cfg, segments.info.state_dim, segments.info.action_dim, **bounds)
 
 
+# Keys added since states were first saved, with the value every earlier run had.
+_ADDED_KEYS = {"tawm_chain": 1, "tawm_residual": False}
+
+
 def _unchanged_at_default(cfg: TrainParams) -> set[str]:
-    """Keys added since states were first saved, left out at the value every earlier run had
-    (the same computation), so those states still resume."""
-    keys = {"tawm_chain"} if cfg.tawm_chain == 1 else set()
-    return keys | ({"tawm_residual"} if not cfg.tawm_residual else set())
+    """The added keys at their earlier value (the same computation), left out of the
+    fingerprint so that states saved before them still resume."""
+    return {key for key, before in _ADDED_KEYS.items() if getattr(cfg, key) == before}
 
 
 def _fingerprint(cfg: TrainParams, segments_dir: Path, world_size: int) -> str:
