@@ -35,6 +35,7 @@ from pipeline.planning.simulated import SimulatedRollout, SimulatedSkillMPC, Sim
 from pipeline.planning.skills import SkillPlanner
 from pipeline.planning.subgoals import StuckWatch, SubgoalGraph
 from pipeline.planning.subtasks import ObjectSubtasks
+from pipeline.planning.support import SkillSupport
 from pipeline.segments import Segments
 from pipeline.value.network import load_value
 
@@ -84,7 +85,11 @@ def _skill_model(params: Params, paths: Paths, segments: Segments, spec: EnvSpec
 def _oposm(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, device) -> AgentSetup:
     cfg = params.deploy
     model, meta, model_dir = _skill_model(params, paths, segments, spec, device)
-    planner = SkillPlanner(model, planner_config(cfg.planner))
+    support = None
+    if cfg.planner.support_weight:
+        support = SkillSupport.from_segments(model, segments, cfg.planner.support_windows)
+        log.info("support bank: %d (state, skill) pairs of the training windows", len(support.bank))
+    planner = SkillPlanner(model, planner_config(cfg.planner), support)
     subgoals = None
     if cfg.subgoals.enabled and isinstance(spec, OBJECT_GOALS):
         raise UserError(
@@ -129,7 +134,7 @@ def _oposm(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, devi
             stuck,
         ),  # fmt: skip
         _tau(cfg.replan_every, skill_horizon(meta, model_dir)),
-        {"model": str(model_dir), "model_step": meta.get("step"), **cfg.planner.model_dump()}
+        {"model": str(model_dir), "model_step": meta.get("step"), **_planner_settings(cfg.planner)}
         | (
             {f"subgoals_{k}": v for k, v in _subgoal_settings(cfg.subgoals).items()}
             if subgoals
@@ -139,6 +144,15 @@ def _oposm(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, devi
         | value_info,
         plan_state_steps=skill_horizon(meta, model_dir),  # a skill
     )
+
+
+def _planner_settings(planner) -> dict:
+    """`deploy.planner` as the report names it; the support bank's settings only when the cost
+    uses it (reports from before they existed read the same)."""
+    settings = planner.model_dump()
+    if not planner.support_weight:
+        del settings["support_weight"], settings["support_windows"]
+    return settings
 
 
 def _subgoal_settings(sub) -> dict:
@@ -286,7 +300,7 @@ def _oposm_sim(
             "model": str(model_dir),
             "model_step": meta.get("step"),
             "scored_in": "simulator",
-            **cfg.planner.model_dump(),
+            **_planner_settings(cfg.planner),
         },  # fmt: skip
         plan_state_steps=steps,
         count_flops=False,  # the cost of a plan is simulator steps, not matrix products

@@ -152,6 +152,22 @@ def test_verdicts_are_inconclusive_near_the_best_published_and_absent_without_ru
     assert antmaze.verdicts("medium", antmaze.collect(tmp_path / "empty")) == []
 
 
+def test_a_stitch_maze_is_judged_against_ogbenchs_stitch_row_and_has_no_paper_claims(tmp_path):
+    assert antmaze.ogbench_name("medium-stitch") == "antmaze-medium-stitch"
+    assert antmaze.ogbench_name("giant") == "antmaze-giant-navigate"
+    root = _maze(tmp_path / "medium-stitch")
+    checks = antmaze.verdicts("medium-stitch", antmaze.collect(root))
+    assert [c["claim"].split(" on ")[-1].split(" (")[0] for c in checks][:1] == [
+        "antmaze-medium-stitch"
+    ]
+    assert "HIQL 94 ± 1" in checks[0]["detail"]
+    assert not any("the paper's table" in c["claim"] for c in checks)
+    report = antmaze.maze_report("medium-stitch", root, [], [], {})
+    page = antmaze.page([report], {}, {})
+    assert "antmaze-medium-stitch-diverse" not in page["paper"]
+    assert page["runs"][0]["dataset"] == "antmaze-medium-stitch"
+
+
 def test_script_writes_each_mazes_report_then_the_page_from_them(tmp_path):
     """`maze`: a maze's report from its data root; `page`: results/antmaze.* from the reports
     alone, so a maze whose data root is gone (another day's run) stays on the page."""

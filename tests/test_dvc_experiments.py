@@ -464,6 +464,22 @@ RERUN_PENDING |= {
                  "pipeline/envs/maze/generate.py")
 }  # fmt: skip
 
+# The plan's support distance in its cost (`deploy.planner.support_weight`, 0 by default: the
+# paper's cost, the same plans; the report names it only when it is used; tests/test_support.py).
+_SUPPORT = "deploy.planner.support_weight (0 by default: the same plans and reports)"
+RERUN_PENDING["pipeline/planning"] += f"; {_SUPPORT}"
+RERUN_PENDING["stages/deploy_agents.py"] += f"; {_SUPPORT}"
+RERUN_PENDING["deploy.planner.support_weight"] = f"(new) {_SUPPORT}"
+RERUN_PENDING["deploy.planner.support_windows"] = f"(new) {_SUPPORT}: the bank's size"
+
+# OGBench's ant stitch and explore rows among the published numbers, and the ant page's datasets
+# beyond navigate (`ogbench_name("medium-stitch")`: antmaze-medium-stitch; no paper claims there):
+# the navigate mazes' reports and the other pages the same.
+RERUN_PENDING["pipeline/evaluation/published"] += "; OGBench's ant stitch and explore rows"
+RERUN_PENDING["pipeline/reporting/antmaze.py"] += (
+    "; the stitch and explore datasets by OGBench's names (the navigate mazes' reports the same)"
+)
+
 
 def _covered(problem: str) -> str | None:
     """The RERUN_PENDING file a stale-lock `problem` is about, or None."""

@@ -39,6 +39,7 @@ def planner_config(p: PlannerParams) -> PlannerConfig:
         compile=p.compile,
         dtype=p.dtype,
         kernel=p.kernel,
+        support_weight=p.support_weight,
     )
 
 

@@ -95,6 +95,11 @@ class SimulatorPlanner(SkillPlanner):
                 "the oposm_sim agent scores plans in the simulator, which has no model "
                 "uncertainty: set deploy.planner.uncertainty_weight=0"
             )
+        if config.support_weight:
+            raise UserError(
+                "the oposm_sim agent scores plans in the simulator, whose outcomes need no "
+                "support in the data: set deploy.planner.support_weight=0"
+            )
         if config.cem.candidates != len(rollout.sim):
             raise ValueError("one scratch simulator per CEM candidate")
         super().__init__(model, config)

@@ -35,6 +35,7 @@ from pipeline.model.skill_model import SkillModel
 from pipeline.planning.cem import CEM, CEMConfig, CEMResult, CEMState
 from pipeline.planning.costs import GoalCost
 from pipeline.planning.fused import PlannerNets
+from pipeline.planning.support import SkillSupport
 
 if TYPE_CHECKING:  # imported where used: Triton is a Linux-only dependency
     from pipeline.planning.triton_rollout import TritonNets
@@ -61,6 +62,10 @@ class PlannerConfig:
         uncertainty_weight: Weight of the plan's uncertainty in the objective: the TAWM's
             predicted std of each skill's outcome (normalized units, mean over the state's
             dims), summed over the skills (0: the paper's cost).
+        support_weight: Weight of the plan's support distance in the objective: how far each
+            (start state, skill) pair of the plan is from the data's pairs, summed over the
+            skills (`pipeline.planning.support`; 0: the paper's cost). Needs the planner's
+            `support` bank.
         warm_start: Start each replan from the previous plan shifted by one skill (zeros appended)
             instead of from zeros.
         compile: Run CEM iterations through `torch.compile` (and, on CUDA, replay each plan as a
@@ -83,12 +88,15 @@ class PlannerConfig:
     compile: bool
     dtype: str
     kernel: str
+    support_weight: float
 
     def __post_init__(self) -> None:
         if self.kernel not in ("torch", "triton"):
             raise ValueError(f"kernel must be 'torch' or 'triton', got {self.kernel!r}")
         if self.uncertainty_weight < 0:
             raise ValueError(f"uncertainty_weight must be >= 0, got {self.uncertainty_weight}")
+        if self.support_weight < 0:
+            raise ValueError(f"support_weight must be >= 0, got {self.support_weight}")
 
 
 @dataclass
@@ -113,11 +121,22 @@ class Plan:
 
 
 class SkillPlanner:
-    """CEM in epsilon-space over the TAWM's predictions, for B problems at once."""
+    """CEM in epsilon-space over the TAWM's predictions, for B problems at once.
 
-    def __init__(self, model: SkillModel, config: PlannerConfig):
+    Args:
+        model: The skill model (prior and TAWM).
+        config: The planner's settings.
+        support: The data's (state, skill) pairs, for `config.support_weight` (needed then).
+    """
+
+    def __init__(
+        self, model: SkillModel, config: PlannerConfig, support: SkillSupport | None = None
+    ):
+        if config.support_weight and support is None:
+            raise ValueError("support_weight > 0 needs the data's (state, skill) pairs: support")
         self.model = model
         self.config = config
+        self.support = support
         self.cem = CEM(config.cem)
         self._compiled_step: Callable | None = None
         self._graphs: dict[int, _GraphedPlan] = {}
@@ -195,7 +214,7 @@ class SkillPlanner:
         model = self.model.config
         if self.config.kernel != "triton" or model.tawm_components > 1 or model.tawm_residual:
             return False
-        if self.config.uncertainty_weight:  # the kernel chains means only
+        if self.config.uncertainty_weight or self.config.support_weight:  # means and goals only
             return False
         return isinstance(cost, GoalCost) and not cost.fall_penalty and cost.scale is None
 
@@ -236,6 +255,10 @@ class SkillPlanner:
         objective = task + weight * eps.pow(2).mean(dim=(-2, -1)) if weight else task
         if uncertainty is not None:
             objective = objective + self.config.uncertainty_weight * uncertainty
+        if self.config.support_weight:
+            starts_n = self.model.norm_states(states[:, :, :-1])  # each skill's start state
+            distance = self.support.distance(starts_n, z).sum(dim=-1)
+            objective = objective + self.config.support_weight * distance
         return objective, (states, z, task)
 
     def _rollout(

@@ -82,7 +82,10 @@ from pipeline.reporting.common import (
 )
 from pipeline.reporting.common import write_page as write_results_page
 
-MAZES = ("medium", "large", "giant")
+# The page's order: OGBench's navigate datasets by their maze, then its stitch and explore ones.
+MAZES = ("medium", "large", "giant", "medium-stitch", "large-stitch", "giant-stitch",
+         "medium-explore", "large-explore")  # fmt: skip
+NAVIGATE = ("medium", "large", "giant")  # the paper's D4RL antmazes have these mazes' counterparts
 TASKS = [f"ogbench-task{i}" for i in range(1, 6)]
 OVERALL = "ogbench"
 OGBENCH_STEPS = 1000  # OGBench's episode limit on its ant mazes
@@ -92,10 +95,13 @@ AGENT_ORDER = ("oposm", "llp", "gcbc", "expert")  # the rows' order; other agent
 
 
 def ogbench_name(maze: str) -> str:
-    return f"antmaze-{maze}-navigate"
+    """OGBench's dataset: `medium` -> antmaze-medium-navigate, `medium-stitch` as it is named."""
+    return f"antmaze-{maze}" if "-" in maze else f"antmaze-{maze}-navigate"
 
 
 def paper_name(maze: str) -> str:
+    """The paper's D4RL counterpart of a navigate maze (the others have none: the paper's tables
+    hold nothing for them)."""
     return f"antmaze-{maze}-diverse"
 
 
@@ -452,7 +458,8 @@ def render(results: Mapping[str, Any]) -> str:
         "observation (a standing ant at the goal).",
         "- Data: OGBench's `navigate` recipe run here with our expert in the place of OGBench's "
         "(BFS oracle direction -> our direction-commanded SAC actor -> + N(0, 0.2), clipped; a "
-        "new goal on each reach; 1001-step episodes).",
+        "new goal on each reach; 1001-step episodes); its `stitch` recipe for the `-stitch` "
+        "datasets (the same controller, 201-step episodes, each to a goal 4 cells away).",
         f"- Expert: `experts/ant/actor.safetensors`, {expert.get('steps')} SAC steps "
         f"({expert.get('sac_phases')}).",
         "- Intervals: 95 % Wilson; verdicts by the rules of `pipeline/reporting/common.py` "
@@ -633,7 +640,7 @@ def page(
                     else {}
                 ),
             }
-            for m in MAZES
+            for m in NAVIGATE
         },  # fmt: skip
     }
 
