@@ -527,17 +527,25 @@ class PlannerParams(_Section):
     support_weight: float = Field(
         0.0,
         ge=0,
-        description="Weight of the plan's support distance added to its cost: how far each of "
-        "its (start state, skill) pairs is from the nearest pair of the training windows "
-        "(first state, posterior skill), squared, the state and skill parts each a mean over "
-        "their dims; summed over the plan's skills. Plans that rest on a skill the data never "
-        "start near that state cost more. 0: the paper's cost.",
+        description="Weight of the plan's support excess added to its cost: for each of its "
+        "(start state, skill) pairs, the squared distance to the nearest pair of the training "
+        "windows (first state, posterior skill; the state and skill parts each a mean over "
+        "their dims) beyond what support_quantile of the data's own pairs reach, summed over "
+        "the plan's skills. Plans that rest on a skill the data never start near that state "
+        "cost more. 0: the paper's cost.",
     )
     support_windows: int = Field(
         4096,
         ge=1,
         description="Training windows (evenly spaced) whose pairs make the support bank "
         "(with support_weight > 0; the distance costs a matrix product with the bank).",
+    )
+    support_quantile: float = Field(
+        0.9,
+        ge=0,
+        le=1,
+        description="The support margin: this quantile of the distances of training windows "
+        "outside the bank; pairs nearer than it pay nothing.",
     )
     stop_cost: float | None = Field(
         None, gt=0, description="Stop a plan once its objective is below this; null: never."

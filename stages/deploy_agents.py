@@ -87,8 +87,10 @@ def _oposm(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, devi
     model, meta, model_dir = _skill_model(params, paths, segments, spec, device)
     support = None
     if cfg.planner.support_weight:
-        support = SkillSupport.from_segments(model, segments, cfg.planner.support_windows)
-        log.info("support bank: %d (state, skill) pairs of the training windows", len(support.bank))
+        p = cfg.planner
+        support = SkillSupport.from_segments(model, segments, p.support_windows, p.support_quantile)
+        log.info("support bank: %d (state, skill) pairs of the training windows, margin %.3f",
+                 len(support.bank), support.margin)  # fmt: skip
     planner = SkillPlanner(model, planner_config(cfg.planner), support)
     subgoals = None
     if cfg.subgoals.enabled and isinstance(spec, OBJECT_GOALS):
@@ -151,7 +153,8 @@ def _planner_settings(planner) -> dict:
     uses it (reports from before they existed read the same)."""
     settings = planner.model_dump()
     if not planner.support_weight:
-        del settings["support_weight"], settings["support_windows"]
+        for key in ("support_weight", "support_windows", "support_quantile"):
+            del settings[key]
     return settings
 
 

@@ -166,6 +166,10 @@ def test_a_stitch_maze_is_judged_against_ogbenchs_stitch_row_and_has_no_paper_cl
     page = antmaze.page([report], {}, {})
     assert "antmaze-medium-stitch-diverse" not in page["paper"]
     assert page["runs"][0]["dataset"] == "antmaze-medium-stitch"
+    # one goal per stitch episode: the page counts the episodes that reach it, not goal steps
+    report["ingest"] |= {"goals_per_1000_steps": 102.2, "episodes_reaching_goal": 3}
+    text = antmaze.render(page | {"mazes": {"medium-stitch": report}, "expert": {}, "stamp": {}})
+    assert "3 episodes reach their goal" in text and "102.2" not in text
 
 
 def test_script_writes_each_mazes_report_then_the_page_from_them(tmp_path):

@@ -471,13 +471,18 @@ RERUN_PENDING["pipeline/planning"] += f"; {_SUPPORT}"
 RERUN_PENDING["stages/deploy_agents.py"] += f"; {_SUPPORT}"
 RERUN_PENDING["deploy.planner.support_weight"] = f"(new) {_SUPPORT}"
 RERUN_PENDING["deploy.planner.support_windows"] = f"(new) {_SUPPORT}: the bank's size"
+RERUN_PENDING["deploy.planner.support_quantile"] = f"(new) {_SUPPORT}: its margin"
 
 # OGBench's ant stitch and explore rows among the published numbers, and the ant page's datasets
 # beyond navigate (`ogbench_name("medium-stitch")`: antmaze-medium-stitch; no paper claims there):
 # the navigate mazes' reports and the other pages the same.
 RERUN_PENDING["pipeline/evaluation/published"] += "; OGBench's ant stitch and explore rows"
 RERUN_PENDING["pipeline/reporting/antmaze.py"] += (
-    "; the stitch and explore datasets by OGBench's names (the navigate mazes' reports the same)"
+    "; the stitch and explore datasets by OGBench's names, a stitch dataset's data line counts the "
+    "episodes that reach their goal (the navigate mazes' reports the same)"
+)
+RERUN_PENDING["experiments/antmaze/notes.json"] = (
+    "antmaze-medium-stitch's notes added; the other mazes' notes the same"
 )
 
 

@@ -62,11 +62,33 @@ def test_the_bank_is_evenly_spaced_training_windows_and_their_posterior_skills(m
     skills, _ = model.infer_skill(states[:, :-1], actions)
     expected = SkillSupport(model.norm_states(states[:, 0]), skills)
     torch.testing.assert_close(support.bank, expected.bank)
+    assert support.margin == 0.0  # no quantile: every distance pays
     # Asking for more windows than there are gives all of them.
     assert len(SkillSupport.from_segments(model, segments, windows=10 * total).bank) == total
 
 
-def test_the_planner_adds_the_weighted_support_distance_summed_over_its_skills(model):
+def test_the_margin_is_a_quantile_of_the_windows_between_the_banks_and_only_beyond_it_pays(model):
+    episodes = make_skill_episodes(6, 40, seed=0)
+    segments = build_segments(episodes, make_info("skills", physics_dim=0), 11, 1, SPLIT, seed=0)
+    total = len(segments.starts["train"])
+    support = SkillSupport.from_segments(model, segments, windows=9, quantile=0.75)
+    idx = np.unique(np.linspace(0, total - 1, 9).round().astype(np.int64))
+    between = (idx[:-1] + idx[1:]) // 2
+    assert not np.isin(between, idx).any()
+    states, actions = (torch.as_tensor(x) for x in segments.windows("train", between))
+    starts_n, skills = (
+        model.norm_states(states[:, 0]),
+        model.infer_skill(states[:, :-1], actions)[0],
+    )
+    own = support.distance(starts_n, skills)
+    assert support.margin == pytest.approx(float(torch.quantile(own.double(), 0.75)))
+    assert support.margin > 0 and (own > support.margin).sum() == 2  # 2 of the 8 pay
+    excess = support.excess(starts_n, skills)
+    torch.testing.assert_close(excess, (own - support.margin).clamp_min(0))
+    assert (excess == 0).sum() == 6
+
+
+def test_the_planner_adds_the_weighted_support_excess_summed_over_its_skills(model):
     g = torch.Generator().manual_seed(2)
     support = SkillSupport(torch.randn(40, 4, generator=g), torch.randn(40, 3, generator=g))
     s0, goals = torch.randn(3, 4, generator=g), torch.randn(3, 2, generator=g)
@@ -77,7 +99,7 @@ def test_the_planner_adds_the_weighted_support_distance_summed_over_its_skills(m
     plan = SkillPlanner(model, config, support).plan(s0, GoalCost(goals), keys)
     task = GoalCost(goals)(plan.states[:, None])[:, 0]
     prior = 0.5 * plan.eps.pow(2).mean(dim=(1, 2))
-    distance = support.distance(model.norm_states(plan.states[:, :-1]), plan.z).sum(dim=-1)
+    distance = support.excess(model.norm_states(plan.states[:, :-1]), plan.z).sum(dim=-1)
     assert distance.min() > 0
     torch.testing.assert_close(plan.objective, task + prior + 0.7 * distance, atol=1e-4, rtol=0)
     with pytest.raises(ValueError, match="support"):
@@ -102,6 +124,7 @@ def test_a_heavy_support_weight_keeps_the_first_skill_near_the_data(model):
 
 
 def test_the_report_names_the_support_settings_only_when_the_cost_uses_them():
-    assert "support_weight" not in _planner_settings(PlannerParams())
+    assert not any(k.startswith("support") for k in _planner_settings(PlannerParams()))
     used = _planner_settings(PlannerParams(support_weight=2.0, support_windows=100))
     assert used["support_weight"] == 2.0 and used["support_windows"] == 100
+    assert used["support_quantile"] == 0.9

@@ -62,10 +62,10 @@ class PlannerConfig:
         uncertainty_weight: Weight of the plan's uncertainty in the objective: the TAWM's
             predicted std of each skill's outcome (normalized units, mean over the state's
             dims), summed over the skills (0: the paper's cost).
-        support_weight: Weight of the plan's support distance in the objective: how far each
-            (start state, skill) pair of the plan is from the data's pairs, summed over the
-            skills (`pipeline.planning.support`; 0: the paper's cost). Needs the planner's
-            `support` bank.
+        support_weight: Weight of the plan's support excess in the objective: how much further
+            each (start state, skill) pair of the plan is from the data's pairs than most of
+            the data's own, summed over the skills (`pipeline.planning.support`; 0: the paper's
+            cost). Needs the planner's `support` bank.
         warm_start: Start each replan from the previous plan shifted by one skill (zeros appended)
             instead of from zeros.
         compile: Run CEM iterations through `torch.compile` (and, on CUDA, replay each plan as a
@@ -257,7 +257,7 @@ class SkillPlanner:
             objective = objective + self.config.uncertainty_weight * uncertainty
         if self.config.support_weight:
             starts_n = self.model.norm_states(states[:, :, :-1])  # each skill's start state
-            distance = self.support.distance(starts_n, z).sum(dim=-1)
+            distance = self.support.excess(starts_n, z).sum(dim=-1)
             objective = objective + self.config.support_weight * distance
         return objective, (states, z, task)
 

@@ -11,8 +11,11 @@ state, and the pairs between its modes.
 and its posterior mean skill. The support distance of a pair is the squared distance to its nearest
 bank pair, with the state part averaged over the state's dims and the skill part over the skill's
 dims (each skill dim divided by its spread in the bank), so the two parts weigh alike whatever
-their sizes. `deploy.planner.support_weight` adds `weight x` the support distances of a plan's
-skills, summed, to its cost (0: the paper's cost).
+their sizes. Even the data's own pairs are some way from the bank (it holds a sample of them), so
+a plan pays only for the distance beyond a margin: a quantile of the distances of training
+windows the bank does not hold (`deploy.planner.support_quantile`). `deploy.planner.
+support_weight` adds `weight x` those excesses of a plan's skills, summed, to its cost (0: the
+paper's cost).
 
 The bank is built at deploy time from the segments the model trained on (evenly spaced training
 windows, `deploy.planner.support_windows` of them): deterministic, nothing saved beside the model.
@@ -37,7 +40,7 @@ class SkillSupport:
         skills: `[M, z]` their posterior mean skills.
     """
 
-    def __init__(self, starts_n: torch.Tensor, skills: torch.Tensor):
+    def __init__(self, starts_n: torch.Tensor, skills: torch.Tensor, margin: float = 0.0):
         if len(starts_n) != len(skills) or not len(skills):
             raise ValueError("the bank needs as many start states as skills, and at least one")
         sd, zd = starts_n.shape[-1], skills.shape[-1]
@@ -46,35 +49,40 @@ class SkillSupport:
         self._skill_w = zd**-0.5 / self.skill_scale
         self.bank = self._features(starts_n, skills)  # [M, sd + z]
         self._bank_sq = self.bank.pow(2).sum(dim=-1)
+        self.margin = float(margin)
 
     @classmethod
     @torch.no_grad()
     def from_segments(
-        cls, model: SkillModel, segments: Segments, windows: int, batch: int = 1024
+        cls,
+        model: SkillModel,
+        segments: Segments,
+        windows: int,
+        quantile: float | None = None,
+        batch: int = 1024,
     ) -> SkillSupport:
-        """The bank of `windows` evenly spaced training windows (all of them if fewer)."""
+        """The bank of `windows` evenly spaced training windows (all of them if fewer). With
+        `quantile`, its margin is that quantile of the support distances of the training windows
+        halfway between the bank's (the data's own pairs, not in the bank; none: margin 0)."""
         total = len(segments.starts["train"])
         if not total:
             raise ValueError("the segments hold no training windows")
         idx = np.unique(np.linspace(0, total - 1, min(windows, total)).round().astype(np.int64))
-        device = model.state_mean.device
-        starts, skills = [], []
-        for lo in range(0, len(idx), batch):
-            states, actions = segments.windows("train", idx[lo : lo + batch])
-            s = torch.as_tensor(states, device=device)
-            a = torch.as_tensor(actions, device=device)
-            mean, _ = model.infer_skill(s[:, :-1], a)
-            starts.append(model.norm_states(s[:, 0]))
-            skills.append(mean)
-        return cls(torch.cat(starts), torch.cat(skills))
+        starts, skills = _pairs(model, segments, idx, batch)
+        support = cls(starts, skills)
+        between = np.setdiff1d((idx[:-1] + idx[1:]) // 2, idx)
+        if quantile is not None and len(between):
+            own = support.distance(*_pairs(model, segments, between, batch))
+            support.margin = float(torch.quantile(own.double(), quantile))
+        return support
 
     def _features(self, states_n: torch.Tensor, skills: torch.Tensor) -> torch.Tensor:
         return torch.cat([states_n * self._state_w, skills * self._skill_w], dim=-1)
 
-    def to(self, device: torch.device) -> SkillSupport:
-        for name in ("skill_scale", "_skill_w", "bank", "_bank_sq"):
-            setattr(self, name, getattr(self, name).to(device))
-        return self
+    def excess(self, states_n: torch.Tensor, skills: torch.Tensor) -> torch.Tensor:
+        """The support distance beyond the margin, `[...]` (0 for pairs as near the bank as
+        most of the data's own): what the planner pays for."""
+        return (self.distance(states_n, skills) - self.margin).clamp_min(0.0)
 
     def distance(self, states_n: torch.Tensor, skills: torch.Tensor) -> torch.Tensor:
         """Support distance `[...]` of pairs `states_n [..., sd]` (normalized), `skills [..., z]`:
@@ -88,3 +96,19 @@ class SkillSupport:
             d = torch.addmm(self._bank_sq, block, self.bank.T, alpha=-2.0)
             out.append(d.amin(dim=-1) + block.pow(2).sum(dim=-1))
         return torch.cat(out).clamp_min(0.0).reshape(shape)
+
+
+def _pairs(
+    model: SkillModel, segments: Segments, idx: np.ndarray, batch: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Training windows `idx`: their first states (normalized) and posterior mean skills."""
+    device = model.state_mean.device
+    starts, skills = [], []
+    for lo in range(0, len(idx), batch):
+        states, actions = segments.windows("train", idx[lo : lo + batch])
+        s = torch.as_tensor(states, device=device)
+        a = torch.as_tensor(actions, device=device)
+        mean, _ = model.infer_skill(s[:, :-1], a)
+        starts.append(model.norm_states(s[:, 0]))
+        skills.append(mean)
+    return torch.cat(starts), torch.cat(skills)

@@ -336,15 +336,18 @@ def _ladder(maze: Mapping[str, Any]) -> list[str]:
     return lines + ([""] if maze.get("random_goal") else [])
 
 
-def _data_lines(maze: Mapping[str, Any]) -> list[str]:
+def _data_lines(name: str, maze: Mapping[str, Any]) -> list[str]:
     lines = []
     ingest, train = maze.get("ingest"), maze.get("train")
     if ingest:
+        # navigate: a new goal on each reach; stitch: one goal per episode, every step there counts
+        goals = (f"{ingest.get('goals_per_1000_steps', float('nan')):.1f} goals reached per 1000 "
+                 "steps" if name in NAVIGATE else
+                 f"{ingest.get('episodes_reaching_goal', float('nan')):.0f} episodes reach their "
+                 "goal")  # fmt: skip
         lines.append(f"- Data: {ingest['episodes']:.0f} episodes, {ingest['steps']:.0f} steps; "
                      f"the ant fallen or upside down in {ingest.get('fallen_steps', 0):.0f} steps "
-                     f"({ingest.get('fallen_episodes', 0):.0f} episodes); "
-                     f"{ingest.get('goals_per_1000_steps', float('nan')):.1f} goals reached per "
-                     "1000 steps.")  # fmt: skip
+                     f"({ingest.get('fallen_episodes', 0):.0f} episodes); {goals}.")  # fmt: skip
     if train:
         val = train["val"]
         lines.append(
@@ -467,7 +470,7 @@ def render(results: Mapping[str, Any]) -> str:
         "",
     ]
     for name, maze in results["mazes"].items():
-        lines += [f"## {ogbench_name(name)}", "", *_data_lines(maze)]
+        lines += [f"## {ogbench_name(name)}", "", *_data_lines(name, maze)]
         lines += [f"- {note}" for note in maze.get("notes", [])]
         lines += ["", "The ladder (each step needs the one before):", "", *_ladder(maze)]
         if maze["agents"]:
