@@ -105,13 +105,6 @@ NOT_RUN_YET: dict[str, tuple[tuple[str, ...], str]] = {
               for d in ("cube-single-play", "scene-play")),
         "OPOSM with a learned value on the datasets whose data roots are rebuilt first",
     ),
-    "experiments/antmaze/dvc.yaml": (
-        tuple(f"{stage}@medium-stitch" for stage in (
-            "ingest", "segment", "train", "dynamics", "bc", "gcbc", "validate", "deploy",
-            "deploy_random_goal", "deploy_llp", "deploy_gcbc", "deploy_expert", "maze",
-        )),
-        "antmaze-medium-stitch (OGBench's stitch recipe): its chain runs a stage at a time",
-    ),
 }  # fmt: skip
 
 
