@@ -547,6 +547,14 @@ class PlannerParams(_Section):
         description="The support margin: this quantile of the distances of training windows "
         "outside the bank; pairs nearer than it pay nothing.",
     )
+    data_skills: int = Field(
+        0,
+        ge=0,
+        description="The first skill of every plan is one the data ran from a like state: the "
+        "nearest (to CEM's proposal) of the posterior skills of the data_skills support-bank "
+        "windows whose first states are nearest the current state; CEM searches the later "
+        "skills as before. 0: any skill (the paper).",
+    )
     stop_cost: float | None = Field(
         None, gt=0, description="Stop a plan once its objective is below this; null: never."
     )

@@ -86,7 +86,7 @@ def _oposm(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, devi
     cfg = params.deploy
     model, meta, model_dir = _skill_model(params, paths, segments, spec, device)
     support = None
-    if cfg.planner.support_weight:
+    if cfg.planner.support_weight or cfg.planner.data_skills:
         p = cfg.planner
         support = SkillSupport.from_segments(model, segments, p.support_windows, p.support_quantile)
         log.info("support bank: %d (state, skill) pairs of the training windows, margin %.3f",
@@ -152,9 +152,11 @@ def _planner_settings(planner) -> dict:
     """`deploy.planner` as the report names it; the support bank's settings only when the cost
     uses it (reports from before they existed read the same)."""
     settings = planner.model_dump()
-    if not planner.support_weight:
+    if not (planner.support_weight or planner.data_skills):
         for key in ("support_weight", "support_windows", "support_quantile"):
             del settings[key]
+    if not planner.data_skills:
+        del settings["data_skills"]
     return settings
 
 

@@ -465,6 +465,9 @@ RERUN_PENDING["stages/deploy_agents.py"] += f"; {_SUPPORT}"
 RERUN_PENDING["deploy.planner.support_weight"] = f"(new) {_SUPPORT}"
 RERUN_PENDING["deploy.planner.support_windows"] = f"(new) {_SUPPORT}: the bank's size"
 RERUN_PENDING["deploy.planner.support_quantile"] = f"(new) {_SUPPORT}: its margin"
+RERUN_PENDING["deploy.planner.data_skills"] = (
+    "(new) deploy.planner.data_skills (0 by default: the same plans and reports)"
+)
 
 # OGBench's ant stitch and explore rows among the published numbers, and the ant page's datasets
 # beyond navigate (`ogbench_name("medium-stitch")`: antmaze-medium-stitch; no paper claims there):

@@ -124,7 +124,49 @@ def test_a_heavy_support_weight_keeps_the_first_skill_near_the_data(model):
 
 
 def test_the_report_names_the_support_settings_only_when_the_cost_uses_them():
-    assert not any(k.startswith("support") for k in _planner_settings(PlannerParams()))
+    plain = _planner_settings(PlannerParams())
+    assert not any(k.startswith(("support", "data_skills")) for k in plain)
     used = _planner_settings(PlannerParams(support_weight=2.0, support_windows=100))
     assert used["support_weight"] == 2.0 and used["support_windows"] == 100
     assert used["support_quantile"] == 0.9
+    assert "data_skills" not in used
+    assert _planner_settings(PlannerParams(data_skills=8))["data_skills"] == 8
+
+
+def test_local_skills_are_those_of_the_nearest_starts_and_snap_picks_the_nearest_of_them():
+    g = torch.Generator().manual_seed(5)
+    starts, skills = torch.randn(30, 4, generator=g), 2.0 * torch.randn(30, 3, generator=g)
+    support = SkillSupport(starts, skills)
+    here = torch.randn(2, 4, generator=g)
+    local = support.local_skills(here, 5)
+    assert local.shape == (2, 5, 3)
+    for b in range(2):  # brute force: the skills of the 5 nearest starts, nearest first
+        order = (starts - here[b]).norm(dim=-1).argsort()[:5]
+        assert torch.equal(local[b], skills[order])
+    proposals = torch.randn(2, 7, 3, generator=g)
+    snapped = support.snap(proposals, local)
+    scale = skills.std(dim=0)
+    for b in range(2):
+        for k in range(7):
+            nearest = ((local[b] - proposals[b, k]) / scale).norm(dim=-1).argmin()
+            assert torch.equal(snapped[b, k], local[b, nearest])
+
+
+def test_with_data_skills_every_plans_first_skill_is_one_of_the_data_skills_near_its_start(model):
+    g = torch.Generator().manual_seed(6)
+    support = SkillSupport(torch.randn(40, 4, generator=g), torch.randn(40, 3, generator=g))
+    s0, goals = torch.randn(3, 4, generator=g), torch.randn(3, 2, generator=g)
+    config = planner_config(horizon=3, candidates=16, elites=4, iterations=3, data_skills=4)
+    plan = SkillPlanner(model, config, support).plan(
+        s0, GoalCost(goals), problem_keys(range(3), "cpu")
+    )
+    local = support.local_skills(model.norm_states(s0), 4)
+    for b in range(3):
+        assert (plan.z[b, 0] == local[b]).all(dim=-1).any()  # the executed skill is a data skill
+    # The later skills stay CEM's: the prior's at their states, not snapped.
+    assert not (plan.z[:, 1:, None] == support.skills[None, None]).all(dim=-1).any()
+    torch.testing.assert_close(
+        plan.objective,
+        GoalCost(goals)(plan.states[:, None])[:, 0] + 2.0 * plan.eps.pow(2).mean(dim=(1, 2)),
+        atol=1e-4, rtol=0,
+    )  # fmt: skip

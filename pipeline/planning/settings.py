@@ -40,6 +40,7 @@ def planner_config(p: PlannerParams) -> PlannerConfig:
         dtype=p.dtype,
         kernel=p.kernel,
         support_weight=p.support_weight,
+        data_skills=p.data_skills,
     )
 
 

@@ -95,10 +95,10 @@ class SimulatorPlanner(SkillPlanner):
                 "the oposm_sim agent scores plans in the simulator, which has no model "
                 "uncertainty: set deploy.planner.uncertainty_weight=0"
             )
-        if config.support_weight:
+        if config.support_weight or config.data_skills:
             raise UserError(
                 "the oposm_sim agent scores plans in the simulator, whose outcomes need no "
-                "support in the data: set deploy.planner.support_weight=0"
+                "support in the data: set deploy.planner.support_weight=0 and data_skills=0"
             )
         if config.cem.candidates != len(rollout.sim):
             raise ValueError("one scratch simulator per CEM candidate")
@@ -106,7 +106,7 @@ class SimulatorPlanner(SkillPlanner):
         self.rollout = rollout
         self.starts: np.ndarray | None = None
 
-    def _rollout(self, eps, nets: PlannerNets, s0, s0_n, prior0):
+    def _rollout(self, eps, nets: PlannerNets, s0, s0_n, prior0, local=None):
         """The states the simulator reaches and the skills it ran; no uncertainty term."""
         if self.starts is None or len(self.starts) != len(s0):
             raise RuntimeError("set SimulatorPlanner.starts to the problems' physics states")

@@ -66,6 +66,9 @@ class PlannerConfig:
             each (start state, skill) pair of the plan is from the data's pairs than most of
             the data's own, summed over the skills (`pipeline.planning.support`; 0: the paper's
             cost). Needs the planner's `support` bank.
+        data_skills: The first skill of every candidate is the nearest of the posterior skills
+            of the `data_skills` bank windows whose first states are nearest the current state
+            (CEM searches the rest as before); 0: any skill (the paper). Needs `support`.
         warm_start: Start each replan from the previous plan shifted by one skill (zeros appended)
             instead of from zeros.
         compile: Run CEM iterations through `torch.compile` (and, on CUDA, replay each plan as a
@@ -89,6 +92,7 @@ class PlannerConfig:
     dtype: str
     kernel: str
     support_weight: float
+    data_skills: int
 
     def __post_init__(self) -> None:
         if self.kernel not in ("torch", "triton"):
@@ -132,8 +136,8 @@ class SkillPlanner:
     def __init__(
         self, model: SkillModel, config: PlannerConfig, support: SkillSupport | None = None
     ):
-        if config.support_weight and support is None:
-            raise ValueError("support_weight > 0 needs the data's (state, skill) pairs: support")
+        if (config.support_weight or config.data_skills) and support is None:
+            raise ValueError("support_weight and data_skills need the data's pairs: support")
         self.model = model
         self.config = config
         self.support = support
@@ -189,9 +193,12 @@ class SkillPlanner:
             nets = FusedNets(nets, fused, goal, cost.skill_penalty)
         s0_n = self.model.norm_states(s0)
         prior0 = nets.prior(s0_n)  # once for all K candidates
+        local = None  # the data's skills near s_0, for the first skill (`data_skills`)
+        if self.config.data_skills:
+            local = self.support.local_skills(s0_n, self.config.data_skills)
         if not self.config.compile:
             return self.cem.minimize(
-                lambda eps: self._objective(eps, nets, s0, s0_n, prior0, cost),
+                lambda eps: self._objective(eps, nets, s0, s0_n, prior0, cost, local),
                 mean,
                 self.config.init_std,
                 keys,
@@ -205,7 +212,7 @@ class SkillPlanner:
         def step(state: CEMState, _, iteration_keys: torch.Tensor) -> CEMState:
             # The first iteration (no best yet: another graph) runs eagerly.
             run = self._step if state.best_extras is None else compiled
-            return run(state, iteration_keys, nets, s0, s0_n, prior0, cost)
+            return run(state, iteration_keys, nets, s0, s0_n, prior0, cost, local)
 
         return self.cem.minimize(None, mean, self.config.init_std, keys, step=step)
 
@@ -214,8 +221,8 @@ class SkillPlanner:
         model = self.model.config
         if self.config.kernel != "triton" or model.tawm_components > 1 or model.tawm_residual:
             return False
-        if self.config.uncertainty_weight or self.config.support_weight:  # means and goals only
-            return False
+        if self.config.uncertainty_weight or self.config.support_weight or self.config.data_skills:
+            return False  # the kernel chains the prior's skills and the TAWM's means only
         return isinstance(cost, GoalCost) and not cost.fall_penalty and cost.scale is None
 
     def _step(
@@ -227,10 +234,11 @@ class SkillPlanner:
         s0_n: torch.Tensor,
         prior0: tuple[torch.Tensor, torch.Tensor],
         cost: StateCost,
+        local: torch.Tensor | None = None,
     ) -> CEMState:
         """One CEM iteration with the objective built inside (what `torch.compile` takes)."""
         return self.cem.step(
-            state, lambda eps: self._objective(eps, nets, s0, s0_n, prior0, cost), keys
+            state, lambda eps: self._objective(eps, nets, s0, s0_n, prior0, cost, local), keys
         )
 
     def _objective(
@@ -241,6 +249,7 @@ class SkillPlanner:
         s0_n: torch.Tensor,
         prior0: tuple[torch.Tensor, torch.Tensor],
         cost: StateCost,
+        local: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
         """Objective `[B, K]` of candidates `eps [B, K, L, z]`, and their states, skills, task."""
         if isinstance(nets, FusedNets):  # one kernel: rollout and goal cost (`_fused`)
@@ -249,7 +258,7 @@ class SkillPlanner:
             )
             uncertainty = None  # `_fused` leaves plans with an uncertainty weight to torch
         else:
-            states, z, uncertainty = self._rollout(eps, nets, s0, s0_n, prior0)
+            states, z, uncertainty = self._rollout(eps, nets, s0, s0_n, prior0, local)
             task = cost(states)
         weight = self.config.prior_weight
         objective = task + weight * eps.pow(2).mean(dim=(-2, -1)) if weight else task
@@ -268,6 +277,7 @@ class SkillPlanner:
         s0: torch.Tensor,
         s0_n: torch.Tensor,
         prior0: tuple[torch.Tensor, torch.Tensor],
+        local: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """Chain prior and TAWM mean over `eps [B, K, L, z]` from `s0 [B, sd]` (raw; `s0_n`
         normalized, `prior0` its prior mean and std `[B, z]`): raw states `[B, K, L + 1, sd]`
@@ -288,6 +298,8 @@ class SkillPlanner:
                 skills.append(torch.addcmul(mu, sigma, flat[:, i]))
             else:
                 z0 = torch.addcmul(prior0[0][:, None], prior0[1][:, None], eps[:, :, 0])
+                if local is not None:  # the nearest of the data's skills near s_0
+                    z0 = self.support.snap(z0, local)
                 skills.append(z0.reshape(b * k, z_dim))
             if uncertainty is None:
                 s = nets.tawm_mean(s, skills[-1])

@@ -17,6 +17,10 @@ windows the bank does not hold (`deploy.planner.support_quantile`). `deploy.plan
 support_weight` adds `weight x` those excesses of a plan's skills, summed, to its cost (0: the
 paper's cost).
 
+With `deploy.planner.data_skills: k` the bank also gives the plan's first skill: the nearest, to
+CEM's proposal, of the posterior skills of the k bank windows whose first states are nearest the
+current state (`local_skills`, `snap`), so the skill executed is one the data ran from a near state.
+
 The bank is built at deploy time from the segments the model trained on (evenly spaced training
 windows, `deploy.planner.support_windows` of them): deterministic, nothing saved beside the model.
 """
@@ -50,6 +54,21 @@ class SkillSupport:
         self.bank = self._features(starts_n, skills)  # [M, sd + z]
         self._bank_sq = self.bank.pow(2).sum(dim=-1)
         self.margin = float(margin)
+        self.starts_n, self.skills = starts_n, skills
+
+    def local_skills(self, states_n: torch.Tensor, k: int) -> torch.Tensor:
+        """`[B, k, z]` the skills of the k bank windows whose first states are nearest each of
+        `states_n [B, sd]` (normalized; Euclidean), nearest first."""
+        d = torch.cdist(states_n, self.starts_n)  # [B, M]
+        idx = d.topk(min(k, len(self.skills)), dim=-1, largest=False).indices
+        return self.skills[idx]
+
+    def snap(self, skills: torch.Tensor, local: torch.Tensor) -> torch.Tensor:
+        """Each of `skills [B, K, z]` replaced by the nearest of its problem's `local [B, k, z]`
+        (each dim over the bank's spread)."""
+        d = torch.cdist(skills / self.skill_scale, local / self.skill_scale)  # [B, K, k]
+        idx = d.argmin(dim=-1)  # [B, K]
+        return local.gather(1, idx[..., None].expand(*idx.shape, local.shape[-1]))
 
     @classmethod
     @torch.no_grad()
