@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The GPU checks in one go (about 10 min on one H100 or H200): the CUDA tests, the fused rollout
+# The GPU checks in one go (about 10 min on one data-centre GPU): the CUDA tests, the fused rollout
 # kernel alone, then `bench/gpu_table.py` (planning at 1, 64 and 256 environments, eager,
 # compiled + CUDA graphs and the paper's procedure as reference; EM training at the default and
 # the paper's sizes), printed as one table with its targets (docs/performance.md).

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The ant chain in one GPU run (about 10 min on one H100 or H200 with 16 CPU cores): OGBench's
+# The ant chain in one GPU run (about 10 min on one data-centre GPU with 16 CPU cores): OGBench's
 # antmaze-medium-navigate recipe (PARAMS: another ant params file) with our expert (ingest,
 # EPISODES episodes, WORKERS processes), segment, then EM training on CUDA with
 # `train.cuda_graph` for MINUTES minutes, in DATA (default /tmp/oposm-ant). The trained model and

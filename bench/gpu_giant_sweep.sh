@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The planner sweep on pointmaze-giant-stitch in one GPU run (about 10 min on one H100 or H200
+# The planner sweep on pointmaze-giant-stitch in one GPU run (about 10 min on one data-centre GPU
 # with 16 CPU cores): OGBench's stitch recipe at OGBench's size (5000
 # episodes of 201 steps, the `giant-stitch5k` root of experiments/ogbench/params.yaml), segment,
 # EM on CUDA (the variant's 5000 steps), then one deploy per planner setting, all at once (one

@@ -88,7 +88,8 @@ def _oposm(params: Params, paths: Paths, segments: Segments, spec: EnvSpec, devi
     support = None
     if cfg.planner.support_weight or cfg.planner.data_skills:
         p = cfg.planner
-        support = SkillSupport.from_segments(model, segments, p.support_windows, p.support_quantile)
+        quantile = p.support_quantile if p.support_weight else None  # the margin: the penalty's
+        support = SkillSupport.from_segments(model, segments, p.support_windows, quantile)
         log.info("support bank: %d (state, skill) pairs of the training windows, margin %.3f",
                  len(support.bank), support.margin)  # fmt: skip
     planner = SkillPlanner(model, planner_config(cfg.planner), support)

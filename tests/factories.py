@@ -113,6 +113,19 @@ def skill_model_config(state_dim: int, action_dim: int, action_low=None, action_
     return build(TrainParams(**train), state_dim, action_dim, action_low, action_high)
 
 
+def small_skill_model():
+    """A small skill model (state 4, action 2, z 3, hidden 16) with random weights (seed 0) and
+    non-trivial normalization, in eval mode: the planner tests' model."""
+    import torch
+
+    from pipeline.model import SkillModel
+
+    torch.manual_seed(0)
+    m = SkillModel(skill_model_config(4, 2, z_dim=3, hidden=16))
+    m.set_normalization([0.5, -0.5, 0.0, 0.0], [2.0, 2.0, 1.0, 1.0], [0.0, 0.0], [0.5, 0.5])
+    return m.eval()
+
+
 def dynamics_config(state_dim: int, action_dim: int, **changes):
     """The single-step model's config from `dynamics` (`DynamicsParams` keys)."""
     from pipeline.config import DynamicsParams

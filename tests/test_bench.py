@@ -6,28 +6,25 @@ from pathlib import Path
 
 import pytest
 import torch
-from factories import make_info, make_skill_episodes, planner_config, skill_model_config
+from factories import (
+    make_info,
+    make_skill_episodes,
+    planner_config,
+    small_skill_model,
+)
 
 from bench.reference import ReferencePlanner
 from bench.roofline import matmul_gflops
 from bench.train import bench_train, bench_train_dtypes
 from pipeline.config import load_params
-from pipeline.model import SkillModel
 from pipeline.model.rollout import rollout_skills
 from pipeline.paths import Paths
 from pipeline.planning import GoalCost, SkillPlanner, problem_keys
 from pipeline.segments import build_segments, save_segments
 
 
-def _model() -> SkillModel:
-    torch.manual_seed(0)
-    m = SkillModel(skill_model_config(4, 2, z_dim=3, hidden=16))
-    m.set_normalization([0.5, -0.5, 0.0, 0.0], [2.0, 2.0, 1.0, 1.0], [0.0, 0.0], [0.5, 0.5])
-    return m.eval()
-
-
 def test_reference_returns_its_plans_objective_and_matches_the_batched_planner():
-    model = _model()
+    model = small_skill_model()
     config = planner_config(horizon=3, candidates=64, elites=8, iterations=8, prior_weight=0.5)
     s0, goals = torch.randn(3, 4), torch.randn(3, 2)
     reference = ReferencePlanner(model, config)

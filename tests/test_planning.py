@@ -4,7 +4,7 @@ the counter-based noise streams, and the compiled planner against eager."""
 import numpy as np
 import pytest
 import torch
-from factories import planner_config, skill_model_config
+from factories import planner_config, small_skill_model
 
 from pipeline.errors import UserError
 from pipeline.model import SkillModel
@@ -131,10 +131,7 @@ def test_fall_penalty_keeps_plans_from_predicted_falls():
 @pytest.fixture(scope="module")
 def model() -> SkillModel:
     """A small skill model with random weights and non-trivial normalization."""
-    torch.manual_seed(0)
-    m = SkillModel(skill_model_config(4, 2, z_dim=3, hidden=16))
-    m.set_normalization([0.5, -0.5, 0.0, 0.0], [2.0, 2.0, 1.0, 1.0], [0.0, 0.0], [0.5, 0.5])
-    return m.eval()
+    return small_skill_model()
 
 
 def test_rollout_chains_prior_and_tawm_means(model):

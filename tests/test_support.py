@@ -4,7 +4,12 @@ a float64 brute force, its bank from the segments, and what it adds to the plann
 import numpy as np
 import pytest
 import torch
-from factories import make_info, make_skill_episodes, planner_config, skill_model_config
+from factories import (
+    make_info,
+    make_skill_episodes,
+    planner_config,
+    small_skill_model,
+)
 
 from pipeline.config import PlannerParams
 from pipeline.model import SkillModel
@@ -20,10 +25,7 @@ SPLIT = {"train": 0.6, "validation": 0.2, "test": 0.2}
 @pytest.fixture(scope="module")
 def model() -> SkillModel:
     """A small skill model with random weights and non-trivial normalization."""
-    torch.manual_seed(0)
-    m = SkillModel(skill_model_config(4, 2, z_dim=3, hidden=16))
-    m.set_normalization([0.5, -0.5, 0.0, 0.0], [2.0, 2.0, 1.0, 1.0], [0.0, 0.0], [0.5, 0.5])
-    return m.eval()
+    return small_skill_model()
 
 
 def brute_force(bank_s, bank_z, s, z):
