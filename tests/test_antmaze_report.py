@@ -282,3 +282,26 @@ def test_table3_counts_each_episode_once_and_judges_only_matching_seeds(tmp_path
     with pytest.raises(UserError, match="no table3-"):
         antmaze_report.main(["table3", "large", str(tmp_path / "empty"), "--e-kl", "sampled",
                              "--out", str(table3)])  # fmt: skip
+
+
+def test_failures_are_sorted_by_what_became_of_each_failed_episode(tmp_path):
+    root = _maze(tmp_path / "medium")
+    episode = {"agent": "oposm", "task": "ogbench-task1", "steps_to_goal": None, "fell_at": None,
+               "min_distance": 9.0}  # fmt: skip
+    _write(root, "runs/oposm/reports/deploy/episodes.json", [
+        episode | {"steps_to_goal": 400},  # a success within 1000 steps: not a failure
+        episode | {"fell_at": 700},  # fell
+        episode | {"fell_at": 700, "steps_to_goal": 1500},  # fell first: fell
+        episode | {"steps_to_goal": 1500, "min_distance": 0.4},  # late
+        episode | {"fell_at": 1600, "min_distance": 3.0},  # near (it fell after step 1000)
+        episode | {"min_distance": 4.5},  # far
+        episode | {"task": "random_goal", "fell_at": 10},  # not one of OGBench's tasks
+        episode | {"agent": "gcbc", "fell_at": 10},  # another agent's
+    ])  # fmt: skip
+    maze = antmaze.collect(root)
+    agents = {a["agent"]: a for a in maze["agents"]}
+    assert agents["oposm"]["failures"] == {"fell": 2, "late": 1, "near": 1, "far": 1}
+    assert agents["gcbc"]["failures"] is None  # its run has no episode records
+    text = "\n".join(antmaze._failure_lines(maze["agents"]))
+    assert "| oposm | 5 | 2 | 1 | 1 | 1 |" in text and "gcbc" not in text
+    assert antmaze._failure_lines([{"agent": "gcbc", "failures": None}]) == []

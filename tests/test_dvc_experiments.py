@@ -248,7 +248,9 @@ RERUN_PENDING: dict[str, str] = {
     "buttons (cube and scene recordings as before)",
     "pipeline/reporting/common.py": "reports read their stage's wall-clock timings from "
     "data/timings/ (same pages where those exist)",
-    "pipeline/reporting/antmaze.py": "the training line says 'time not recorded' without timings",
+    "pipeline/reporting/antmaze.py": "the training line says 'time not recorded' without "
+    "timings; a maze's failed episodes sorted (fell, late, near, far) where its deploys kept "
+    "their episode records",
     "pipeline/reporting/manipulation.py": "the training line says 'time not recorded' without "
     "timings; the page shows a dataset's ladder where there is one; the puzzles are datasets it "
     "knows (the page as before until they run)",

@@ -92,6 +92,8 @@ OGBENCH_STEPS = 1000  # OGBench's episode limit on its ant mazes
 MASS_RUN = "mass"  # runs named mass<factor> (`deploy.mass_scale`): the figure-5 sweep
 TABLE3_RUN = "table3-"  # runs table3-<method>-seed<seed> (stages em_vi_*): table 3, EM vs VI
 AGENT_ORDER = ("oposm", "llp", "gcbc", "expert")  # the rows' order; other agents after
+NEAR_M = 4.0  # one OGBench ant-maze cell: "near the goal" when sorting the failed episodes
+FAILURES = ("fell", "late", "near", "far")  # `failures`' kinds, in the page's order
 
 
 def ogbench_name(maze: str) -> str:
@@ -119,6 +121,8 @@ def protocols(row: Mapping[str, Any], max_steps: int) -> dict[str, dict[str, Any
 
 
 def _runs(root: Path) -> list[tuple[str, dict[str, Any]]]:
+    """Each deploy run's report (`name -> report.json`), with its episode records
+    (`episodes.json` beside it) under `_episodes` where there are some."""
     paths = [root / "reports" / "deploy" / "report.json"]
     paths += sorted((root / "runs").glob("*/reports/deploy/report.json"))
     found = []
@@ -126,8 +130,31 @@ def _runs(root: Path) -> list[tuple[str, dict[str, Any]]]:
         report = read(path)
         if report:
             name = path.parents[2].name if path.parents[2] != root else "deploy"
-            found.append((name, report))
+            episodes = read(path.with_name("episodes.json"))
+            found.append((name, report | ({"_episodes": episodes} if episodes else {})))
     return found
+
+
+def failures(episodes: list[Mapping[str, Any]]) -> dict[str, int]:
+    """OGBench's failures (no success within its 1000 steps) sorted by what became of them:
+    `fell` (the ant fell before step 1000), `late` (it reached the goal later in a longer
+    episode), `near` (it came within one maze cell, NEAR_M, of the goal and did not reach it),
+    `far` (it never came that near)."""
+    out = dict.fromkeys(FAILURES, 0)
+    for e in episodes:
+        reached = e.get("steps_to_goal")
+        if reached is not None and reached <= OGBENCH_STEPS:
+            continue
+        fell = e.get("fell_at")
+        if fell is not None and fell <= OGBENCH_STEPS:
+            out["fell"] += 1
+        elif reached is not None:
+            out["late"] += 1
+        elif e.get("min_distance", float("inf")) <= NEAR_M:
+            out["near"] += 1
+        else:
+            out["far"] += 1
+    return out
 
 
 def _agents(runs: list[tuple[str, dict[str, Any]]]) -> list[dict[str, Any]]:
@@ -144,9 +171,12 @@ def _agents(runs: list[tuple[str, dict[str, Any]]]) -> list[dict[str, Any]]:
             seen.add(agent)
             tasks = {t: protocols(by_task[t], report["max_steps"]) for t in [*TASKS, OVERALL]
                      if t in by_task}  # fmt: skip
+            episodes = [e for e in report.get("_episodes", [])
+                        if e.get("agent") == agent and e.get("task") in TASKS]  # fmt: skip
             rows.append({"agent": name, "run": run, "max_steps": report["max_steps"],
                          "episodes_per_task": report["episodes_per_task"],
-                         "fallen": by_task[OVERALL].get("fallen"), "tasks": tasks})  # fmt: skip
+                         "fallen": by_task[OVERALL].get("fallen"), "tasks": tasks,
+                         "failures": failures(episodes) if episodes else None})  # fmt: skip
     order = {agent: i for i, agent in enumerate(AGENT_ORDER)}
     return sorted(rows, key=lambda r: order.get(r["agent"].split(" (run ")[0], len(order)))
 
@@ -279,6 +309,23 @@ def _agent_rows(agents: list[dict[str, Any]]) -> list[str]:
         lines.append(f"| {a['agent']} | {a['episodes_per_task']} | " + " | ".join(cells)
                      + f" | **{_cell(overall['ogbench'])}** | {_cell(overall['paper'])} "
                      f"| {fell} |")  # fmt: skip
+    return lines
+
+
+def _failure_lines(agents: list[dict[str, Any]]) -> list[str]:
+    """The failed episodes under OGBench's protocol, sorted (`failures`), for the agents whose
+    episode records the report read; nothing when none has them."""
+    rows = [a for a in agents if a.get("failures")]
+    if not rows:
+        return []
+    lines = ["", "Where the failures under OGBench's protocol end (episodes; `fell`: the ant fell "
+             "within the 1000 steps; `late`: it reached the goal after them; `near`: it came "
+             f"within {NEAR_M:g} m, one maze cell, and did not reach it; `far`: never that near):",
+             "", "| agent | failed | fell | late | near | far |", "|---" * 6 + "|"]  # fmt: skip
+    for a in rows:
+        f = a["failures"]
+        lines.append(f"| {a['agent']} | {sum(f.values())} | "
+                     + " | ".join(str(f[k]) for k in FAILURES) + " |")  # fmt: skip
     return lines
 
 
@@ -483,6 +530,7 @@ def render(results: Mapping[str, Any]) -> str:
             if not maze["agents"]:
                 lines += _agent_rows([])
             lines.append(row)
+        lines += _failure_lines(maze["agents"])
         fig5 = maze.get("figure5")
         if fig5 and fig5.get("mass_sweep"):
             lines += ["", "Robustness to the ant's mass (paper figure 5: every body's mass and "
