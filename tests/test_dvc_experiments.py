@@ -107,7 +107,7 @@ NOT_RUN_YET: dict[str, tuple[tuple[str, ...], str]] = {
     ),
     "experiments/antmaze/dvc.yaml": (
         tuple(f"{stage}@large-stitch" for stage in (
-            "deploy_random_goal", "deploy_llp", "maze")),
+            "deploy_llp", "maze")),
         "antmaze-large-stitch: its chain runs stage by stage (hours on 2 CPU cores)",
     ),
 }  # fmt: skip
