@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The GPU checks in one go (about 10 min on one data-centre GPU): the CUDA tests, the fused rollout
+# The GPU checks in one go (about 10 min): the CUDA tests, the fused rollout
 # kernel alone, then `bench/gpu_table.py` (planning at 1, 64 and 256 environments, eager,
 # compiled + CUDA graphs and the paper's procedure as reference; EM training at the default and
 # the paper's sizes), printed as one table with its targets (docs/performance.md).
@@ -9,9 +9,9 @@
 #   bash bench/gpu.sh
 # It times the trained default model (`oposm segment` and `oposm train` first, or DATA= a folder
 # holding models/pointmaze-medium and segments/pointmaze-medium; LLP is timed only if its models
-# are there too). A machine without network whose python has torch with CUDA but not the rest of
-# the dependencies takes them as wheels: `bash bench/gpu_wheels.sh` on a machine with network,
-# then copy .whl/ into the repository there (bench/gpu_env.sh installs them).
+# are there too). Offline, with torch and CUDA installed but not the rest of the dependencies:
+# `bash bench/gpu_wheels.sh` fetches them as wheels into .whl/ where there is network, and
+# bench/gpu_env.sh installs them from there.
 # Results land in OUT (default /tmp/oposm-gpu): gpu.json (written after every section),
 # tests.log, kernel.json, bench.log, table.txt.
 #
@@ -21,9 +21,9 @@ set -uo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 OUT=${OUT:-/tmp/oposm-gpu}
-DATA=${DATA:-data}  # where the carried model and segments are
+DATA=${DATA:-data}  # where the trained model and segments are
 mkdir -p "$OUT"
-source bench/gpu_env.sh  # the carried wheels, PYTHONPATH
+source bench/gpu_env.sh  # the wheels in .whl/, if any; PYTHONPATH
 "$PY" -c "import torch, sys; sys.exit(not torch.cuda.is_available())" || {
     echo "no CUDA GPU visible to $PY"; exit 1; }
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$OUT/gpu.txt"

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The ant chain in one GPU run (about 10 min on one data-centre GPU with 16 CPU cores): OGBench's
+# The ant chain in one GPU run (about 10 min with 16 CPU cores for the data): OGBench's
 # antmaze-medium-navigate recipe (PARAMS: another ant params file) with our expert (ingest,
 # EPISODES episodes, WORKERS processes), segment, then EM training on CUDA with
 # `train.cuda_graph` for MINUTES minutes, in DATA (default /tmp/oposm-ant). The trained model and
@@ -10,10 +10,9 @@
 # On any Linux machine with a CUDA GPU, from the repository's root, with the project installed
 # (`uv sync`; PYTHON names its interpreter):
 #   bash bench/gpu_ant.sh
-# A machine without network whose python has torch with CUDA but not the rest takes the rest as
-# wheels: `bash bench/gpu_wheels.sh --ant` on a machine with network (33 MB, without
-# gymnasium-robotics, which the ant chain does not import), then copy .whl/ into the repository
-# there.
+# Offline, with torch and CUDA installed but not the rest: `bash bench/gpu_wheels.sh --ant`
+# fetches the rest as wheels into .whl/ where there is network (33 MB, without
+# gymnasium-robotics, which the ant chain does not import).
 # DEADLINE (epoch seconds) shortens the training so that the script ends by then.
 # Dry run without a GPU (tiny sizes, CPU): EPISODES=20 WORKERS=2 MINUTES=0.5 DEVICE=cpu \
 #   OUT=/tmp/ant-dry bash bench/gpu_ant.sh
@@ -28,7 +27,7 @@ MINUTES=${MINUTES:-5}
 DEVICE=${DEVICE:-cuda}
 PARAMS=${PARAMS:-params-ogbench-antmaze-medium.yaml}   # or params-ogbench-antmaze-large.yaml
 mkdir -p "$OUT"
-source bench/gpu_env.sh  # the carried wheels, PYTHONPATH
+source bench/gpu_env.sh  # the wheels in .whl/, if any; PYTHONPATH
 if [ "$DEVICE" = cuda ]; then
     nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$OUT/gpu.txt"
 fi

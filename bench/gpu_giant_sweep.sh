@@ -1,7 +1,6 @@
 #!/usr/bin/env bash
-# The planner sweep on pointmaze-giant-stitch in one GPU run (about 10 min on one data-centre GPU
-# with 16 CPU cores): OGBench's stitch recipe at OGBench's size (5000
-# episodes of 201 steps, the `giant-stitch5k` root of experiments/ogbench/params.yaml), segment,
+# The planner sweep on pointmaze-giant-stitch in one GPU run (about 10 min with 16 CPU cores):
+# OGBench's stitch recipe at OGBench's size (5000 episodes of 201 steps, the `giant-stitch5k` root of experiments/ogbench/params.yaml), segment,
 # EM on CUDA (the variant's 5000 steps), then one deploy per planner setting, all at once (one
 # core each, plans on the GPU), on OGBench's five tasks with 2000-step episodes: success within
 # OGBench's 1000 steps is `steps_to_goal <= 1000` of the same episodes, and the rest says how
@@ -9,9 +8,8 @@
 # results row: the chosen setting is then run by experiments/ogbench/dvc.yaml.
 #
 # On any Linux machine with a CUDA GPU, from the repository's root, with the project installed
-# (`uv sync`; PYTHON names its interpreter): `bash bench/gpu_giant_sweep.sh`; without network,
-# the wheels of `bash bench/gpu_wheels.sh --ant` (fetched elsewhere) copied to .whl/ first. The
-# reports are packed into OUT (default /tmp/oposm-gpu-sweep) as sweep.tgz, one folder per
+# (`uv sync`; PYTHON names its interpreter): `bash bench/gpu_giant_sweep.sh`; offline, the
+# wheels of `bash bench/gpu_wheels.sh --ant` in .whl/ first. The reports are packed into OUT (default /tmp/oposm-gpu-sweep) as sweep.tgz, one folder per
 # setting: reports/deploy/episodes.json and metrics; the logs as logs.tgz.
 # The deploys need rerun-sdk installed (stages/deploy.py imports it; these deploys record
 # nothing, `deploy.record_episodes=0`). DEPLOY_TIMEOUT (seconds, `timeout`'s 0 = none) bounds
