@@ -121,18 +121,20 @@ def protocols(row: Mapping[str, Any], max_steps: int) -> dict[str, dict[str, Any
 
 
 def _runs(root: Path) -> list[tuple[str, dict[str, Any]]]:
-    """Each deploy run's report (`name -> report.json`), with its episode records
-    (`episodes.json` beside it) under `_episodes` where there are some."""
-    paths = [root / "reports" / "deploy" / "report.json"]
+    paths = [_deploy_dir(root, "deploy") / "report.json"]
     paths += sorted((root / "runs").glob("*/reports/deploy/report.json"))
     found = []
     for path in paths:
         report = read(path)
         if report:
             name = path.parents[2].name if path.parents[2] != root else "deploy"
-            episodes = read(path.with_name("episodes.json"))
-            found.append((name, report | ({"_episodes": episodes} if episodes else {})))
+            found.append((name, report))
     return found
+
+
+def _deploy_dir(root: Path, run: str) -> Path:
+    """Where run `run`'s deploy reports are (`deploy`: the data root's own, unnamed run)."""
+    return (root if run == "deploy" else root / "runs" / run) / "reports" / "deploy"
 
 
 def failures(episodes: list[Mapping[str, Any]]) -> dict[str, int]:
@@ -157,21 +159,23 @@ def failures(episodes: list[Mapping[str, Any]]) -> dict[str, int]:
     return out
 
 
-def _agents(runs: list[tuple[str, dict[str, Any]]]) -> list[dict[str, Any]]:
+def _agents(root: Path, runs: list[tuple[str, dict[str, Any]]]) -> list[dict[str, Any]]:
     """Every agent of every run on OGBench's tasks (mass sweeps aside): its rates per task under
-    both protocols, its falls; an agent met again is named after its run."""
+    both protocols, its falls and, where the run kept its episode records (`episodes.json`),
+    its failures sorted; an agent met again is named after its run."""
     rows, seen = [], set()
     # a run named after its agent (runs/oposm/) first: that agent's row; others after, by name
     named_first = sorted(runs, key=lambda r: (r[0] not in r[1].get("by_agent", {}), r[0]))
     for run, report in named_first:
         if run.startswith((MASS_RUN, TABLE3_RUN)) or OVERALL not in report.get("tasks", []):
             continue
+        records = read(_deploy_dir(root, run) / "episodes.json") or []
         for agent, by_task in report["by_agent"].items():
             name = agent if agent not in seen else f"{agent} (run {run})"
             seen.add(agent)
             tasks = {t: protocols(by_task[t], report["max_steps"]) for t in [*TASKS, OVERALL]
                      if t in by_task}  # fmt: skip
-            episodes = [e for e in report.get("_episodes", [])
+            episodes = [e for e in records
                         if e.get("agent") == agent and e.get("task") in TASKS]  # fmt: skip
             rows.append({"agent": name, "run": run, "max_steps": report["max_steps"],
                          "episodes_per_task": report["episodes_per_task"],
@@ -220,7 +224,7 @@ def collect(root: Path) -> dict[str, Any]:
         out[stage] = read(reports / stage / "report.json")
     out["train"] = read(reports / "train" / "metrics.json")
     runs = _runs(root)
-    out["agents"] = _agents(runs)
+    out["agents"] = _agents(root, runs)
     out["random_goal"] = _random_goal(runs)
     return out
 
