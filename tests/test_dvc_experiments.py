@@ -106,9 +106,12 @@ NOT_RUN_YET: dict[str, tuple[tuple[str, ...], str]] = {
         "OPOSM with a learned value on the datasets whose data roots are rebuilt first",
     ),
     "experiments/antmaze/dvc.yaml": (
-        tuple(f"{stage}@large-stitch" for stage in (
-            "deploy_llp", "maze")),
-        "antmaze-large-stitch: its chain runs stage by stage (hours on 2 CPU cores)",
+        tuple(f"{stage}@large-stitch" for stage in ("deploy_llp", "maze"))
+        + tuple(f"{stage}@giant-stitch" for stage in (
+            "ingest", "segment", "train", "dynamics", "bc", "gcbc", "validate", "deploy",
+            "deploy_expert", "deploy_gcbc", "deploy_random_goal", "deploy_llp", "maze")),
+        "antmaze-large-stitch and -giant-stitch: their chains run stage by stage (hours on 2 CPU "
+        "cores)",
     ),
 }  # fmt: skip
 
@@ -485,7 +488,8 @@ RERUN_PENDING["pipeline/reporting/antmaze.py"] += (
     "episodes that reach their goal (the navigate mazes' reports the same)"
 )
 RERUN_PENDING["experiments/antmaze/notes.json"] = (
-    "antmaze-medium-stitch's notes added; the other mazes' notes the same"
+    "antmaze-medium-stitch's and antmaze-large-stitch's notes added; the other mazes' notes the "
+    "same"
 )
 
 
