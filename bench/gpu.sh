@@ -1,6 +1,5 @@
 #!/usr/bin/env bash
-# The GPU checks in one go (about 10 min): the CUDA tests, the fused rollout
-# kernel alone, then `bench/gpu_table.py` (planning at 1, 64 and 256 environments, eager,
+# The GPU checks: the CUDA tests, the fused rollout kernel alone, then `bench/gpu_table.py` (planning at 1, 64 and 256 environments, eager,
 # compiled + CUDA graphs and the paper's procedure as reference; EM training at the default and
 # the paper's sizes), printed as one table with its targets (docs/performance.md).
 #
@@ -9,9 +8,9 @@
 #   bash bench/gpu.sh
 # It times the trained default model (`oposm segment` and `oposm train` first, or DATA= a folder
 # holding models/pointmaze-medium and segments/pointmaze-medium; LLP is timed only if its models
-# are there too). Offline, with torch and CUDA installed but not the rest of the dependencies:
-# `bash bench/gpu_wheels.sh` fetches them as wheels into .whl/ where there is network, and
-# bench/gpu_env.sh installs them from there.
+# are there too). On a node without network access that has torch and CUDA but not the rest of
+# the dependencies: `bash bench/gpu_wheels.sh` on a machine with network fetches them as wheels
+# into .whl/, and bench/gpu_env.sh installs them from there.
 # Results land in OUT (default /tmp/oposm-gpu): gpu.json (written after every section),
 # tests.log, kernel.json, bench.log, table.txt.
 #
@@ -30,7 +29,8 @@ nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | 
 
 echo "== CUDA tests"
 # GPU_TESTS_K: a pytest -k filter (e.g. "training"); GPU_TABLE_ARGS: gpu_table.py arguments;
-# GPU_BENCH_TIMEOUT: seconds the benchmarks may take (330).
+# GPU_BENCH_TIMEOUT: seconds the benchmarks may take (330); each section is bounded so that a
+# hung kernel cannot stall the others.
 timeout 150 "$PY" -m pytest -q -ra -m gpu tests/test_gpu.py ${GPU_TESTS_K:+-k "$GPU_TESTS_K"} 2>&1 |
     tee "$OUT/tests.log"
 tests=${PIPESTATUS[0]}

@@ -1,19 +1,20 @@
 #!/usr/bin/env bash
-# The ant chain in one GPU run (about 10 min with 16 CPU cores for the data): OGBench's
+# The ant chain on a CUDA GPU, its data made on the CPU cores beside it: OGBench's
 # antmaze-medium-navigate recipe (PARAMS: another ant params file) with our expert (ingest,
 # EPISODES episodes, WORKERS processes), segment, then EM training on CUDA with
 # `train.cuda_graph` for MINUTES minutes, in DATA (default /tmp/oposm-ant). The trained model and
 # the training reports are also packed into OUT (default /tmp/oposm-gpu-ant) as ant.tgz, the logs
-# beside them: validate and deploy then run on any CPU, with the same params and `--data` at the
-# unpacked folder.
+# beside them, to copy elsewhere: validate and deploy then run on any CPU, with the same params
+# and `--data` at the unpacked folder. WORKERS defaults to one per CPU core but one.
 #
 # On any Linux machine with a CUDA GPU, from the repository's root, with the project installed
 # (`uv sync`; PYTHON names its interpreter):
 #   bash bench/gpu_ant.sh
-# Offline, with torch and CUDA installed but not the rest: `bash bench/gpu_wheels.sh --ant`
-# fetches the rest as wheels into .whl/ where there is network (33 MB, without
+# On a node without network access that has torch and CUDA but not the rest: `bash
+# bench/gpu_wheels.sh --ant` on a machine with network fetches the rest as wheels into .whl/ (33 MB, without
 # gymnasium-robotics, which the ant chain does not import).
-# DEADLINE (epoch seconds) shortens the training so that the script ends by then.
+# DEADLINE (epoch seconds, e.g. a batch job's time limit) shortens the training so that the
+# script ends by then.
 # Dry run without a GPU (tiny sizes, CPU): EPISODES=20 WORKERS=2 MINUTES=0.5 DEVICE=cpu \
 #   OUT=/tmp/ant-dry bash bench/gpu_ant.sh
 set -uo pipefail
@@ -22,7 +23,7 @@ PY=${PYTHON:-python3}
 OUT=${OUT:-/tmp/oposm-gpu-ant}
 DATA=${DATA:-/tmp/oposm-ant}
 EPISODES=${EPISODES:-1000}
-WORKERS=${WORKERS:-15}
+WORKERS=${WORKERS:-$(( $(nproc) > 1 ? $(nproc) - 1 : 1 ))}
 MINUTES=${MINUTES:-5}
 DEVICE=${DEVICE:-cuda}
 PARAMS=${PARAMS:-params-ogbench-antmaze-medium.yaml}   # or params-ogbench-antmaze-large.yaml

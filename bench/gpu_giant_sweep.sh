@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The planner sweep on pointmaze-giant-stitch in one GPU run (about 10 min with 16 CPU cores):
+# The planner sweep on pointmaze-giant-stitch on a CUDA GPU and the CPU cores beside it:
 # OGBench's stitch recipe at OGBench's size (5000 episodes of 201 steps, the `giant-stitch5k` root of experiments/ogbench/params.yaml), segment,
 # EM on CUDA (the variant's 5000 steps), then one deploy per planner setting, all at once (one
 # core each, plans on the GPU), on OGBench's five tasks with 2000-step episodes: success within
@@ -8,9 +8,11 @@
 # results row: the chosen setting is then run by experiments/ogbench/dvc.yaml.
 #
 # On any Linux machine with a CUDA GPU, from the repository's root, with the project installed
-# (`uv sync`; PYTHON names its interpreter): `bash bench/gpu_giant_sweep.sh`; offline, the
-# wheels of `bash bench/gpu_wheels.sh --ant` in .whl/ first. The reports are packed into OUT (default /tmp/oposm-gpu-sweep) as sweep.tgz, one folder per
-# setting: reports/deploy/episodes.json and metrics; the logs as logs.tgz.
+# (`uv sync`; PYTHON names its interpreter): `bash bench/gpu_giant_sweep.sh`; on a node without
+# network access, the wheels of `bash bench/gpu_wheels.sh --ant` in .whl/ first. The reports are
+# packed into OUT (default /tmp/oposm-gpu-sweep) as sweep.tgz, one folder per setting:
+# reports/deploy/episodes.json and metrics; the logs as logs.tgz. WORKERS defaults to one per
+# CPU core but one.
 # The deploys need rerun-sdk installed (stages/deploy.py imports it; these deploys record
 # nothing, `deploy.record_episodes=0`). DEPLOY_TIMEOUT (seconds, `timeout`'s 0 = none) bounds
 # the deploys; the reports written by then are packed either way.
@@ -26,7 +28,7 @@ EPISODES_DATA=${EPISODES_DATA:-5000}
 STEPS=${STEPS:-5000}
 EPISODES=${EPISODES:-20}
 MAX_STEPS=${MAX_STEPS:-2000}
-WORKERS=${WORKERS:-15}
+WORKERS=${WORKERS:-$(( $(nproc) > 1 ? $(nproc) - 1 : 1 ))}
 LOGS="$DATA/logs"  # every log, packed as $OUT/logs.tgz
 mkdir -p "$OUT" "$LOGS"
 source bench/gpu_env.sh
