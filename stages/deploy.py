@@ -11,6 +11,10 @@ Every agent runs the same episodes (tasks, starts, goals, seeds) under the same 
 success rule. Writes `data/reports/deploy/report.json` (one section per agent, and OPOSM vs LLP when
 both ran), `data/reports/deploy/episodes.json` (one row per agent and episode) and
 `data/recordings/deploy/<agent>-<task>-<episode>.rrd`.
+
+Each job (one agent's episodes of one task) is kept in `data/scratch/deploy/` as soon as it
+ends: a killed deploy, run again with the same params and models, reads its finished jobs back
+and runs only the others, with the same bytes (`stages.deploy_jobs.JobStore`).
 """
 
 from __future__ import annotations
@@ -52,7 +56,15 @@ from pipeline.viz.kitchen import write_kitchen_episode_recording
 from pipeline.viz.manip import write_manip_episode_recording, write_manip_overview
 from pipeline.viz.overview import write_overview
 from stages.deploy_agents import OBJECT_GOALS, AgentSetup, build_agent
-from stages.deploy_jobs import Job, Runner, make_simulators, run_jobs, worker_count
+from stages.deploy_jobs import (
+    Job,
+    JobStore,
+    Runner,
+    input_files,
+    make_simulators,
+    run_jobs,
+    worker_count,
+)
 from stages.report import report_files, split_timings, write_report, write_timings
 
 log = logging.getLogger(__name__)
@@ -170,10 +182,11 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
     workers = worker_count(params, len(jobs))
     # One worker: the jobs run here, on the agents built above; else each worker builds its own.
     local = Runner(make_simulators(params, segments, spec), setups) if workers == 1 else None
+    store = JobStore(params, paths, input_files(params, paths, segments))  # a killed run resumes
     done = dict(
         zip(
             ((j.agent, j.task) for j in jobs),
-            run_jobs(jobs, local, params, paths, workers, progress),
+            run_jobs(jobs, local, params, paths, workers, progress, store),
             strict=True,
         )
     )
@@ -233,4 +246,5 @@ def _run(params: Params, paths: Paths, progress: bool) -> dict[str, Any]:
         out.write_json(paths.live("deploy") / "episodes.json", kept_rows)
         write_report(paths, "deploy", report, out)
         write_timings(paths, "deploy-episodes", row_timings)
+    store.clear(jobs)  # the outputs are written: the finished jobs are no longer needed
     return report

@@ -249,6 +249,44 @@ def test_episodes_are_the_same_bytes_on_one_process_or_several(project, tmp_path
             assert ours == (root / "data" / name).read_bytes(), name
 
 
+def test_a_killed_deploy_resumes_from_its_finished_jobs_with_the_same_bytes(
+    project, tmp_path, monkeypatch
+):
+    """A deploy killed after three of its eight (agent, task) jobs, run again, runs only the
+    five others and writes the reports the uninterrupted run wrote, byte for byte; once they
+    are written, the finished jobs are deleted."""
+    from stages.deploy_jobs import Runner
+
+    root, _, _ = project
+    assert not list((root / "data/scratch/deploy").glob("*")), "the fixture's run left jobs"
+    data = tmp_path / "data"
+    shutil.copytree(root / "data", data, ignore=shutil.ignore_patterns("recordings"))
+    args = ["deploy", "--params", str(root / "params.yaml"), "--data", str(data),
+            "-S", "deploy.workers=1"]  # fmt: skip
+    ran = []
+    real_run = Runner.run
+
+    def run(self, job, progress, position=None):
+        if len(ran) == 3 and kill:
+            raise RuntimeError("killed")
+        ran.append((job.agent, job.task))
+        return real_run(self, job, progress, position)
+
+    monkeypatch.setattr(Runner, "run", run)
+    kill = True
+    assert runner.invoke(app, args).exit_code != 0
+    assert len(list((data / "scratch/deploy").iterdir())) == 3
+    first = list(ran)
+    kill, ran[:] = False, []
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    assert len(ran) == 5 and not set(ran) & set(first)
+    for name in ("reports/deploy/episodes.json", "reports/deploy/report.json"):
+        ours = (data / name).read_bytes().replace(bytes(data), bytes(root / "data"))
+        assert ours == (root / "data" / name).read_bytes(), name
+    assert not list((data / "scratch/deploy").iterdir())
+
+
 def test_recordings_load_back_with_rerun(project):
     root, _, _ = project
     files = sorted((root / "data/recordings/deploy").glob("*.rrd"))

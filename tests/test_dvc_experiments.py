@@ -492,6 +492,10 @@ RERUN_PENDING["experiments/antmaze/notes.json"] = (
     "antmaze-medium-stitch's and antmaze-large-stitch's notes added; the other mazes' notes the "
     "same"
 )
+_RESUME = "a killed deploy resumes from its finished jobs (the same episodes and reports)"
+RERUN_PENDING["stages/deploy_jobs.py"] += f"; {_RESUME}"
+RERUN_PENDING["stages/deploy.py"] += f"; {_RESUME}"
+RERUN_PENDING["pipeline/evaluation/episode_store.py"] = f"(new) {_RESUME}"
 
 
 def _covered(problem: str) -> str | None:
