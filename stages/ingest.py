@@ -1,4 +1,9 @@
-"""Ingest stage: demonstrations into one checked MCAP dataset, `data/demos/<name>.mcap`."""
+"""Ingest stage: demonstrations into one checked MCAP dataset, `data/demos/<name>.mcap`.
+
+Episodes generated with OGBench's recipes are kept in `data/scratch/ingest/<name>/` in chunks as
+they are made (`pipeline.sources.episode_cache`): a killed ingest, run again with the same
+params, reads the finished chunks back and writes the same file.
+"""
 
 from __future__ import annotations
 
@@ -18,13 +23,17 @@ from pipeline.envs.spec import check_physics_dim
 from pipeline.errors import UserError
 from pipeline.paths import Paths
 from pipeline.recording import iter_episodes, write_dataset
+from pipeline.sources.episode_cache import clear as clear_episodes
 from stages.report import report_files, write_report
 
 log = logging.getLogger(__name__)
 
 
-def _source(params: Params, progress: bool) -> tuple[DatasetInfo, Iterator[Episode]]:
-    """The dataset's metadata and episode stream: generated (maze) or imported."""
+def _source(
+    params: Params, progress: bool, cache_root: Path
+) -> tuple[DatasetInfo, Iterator[Episode]]:
+    """The dataset's metadata and episode stream: generated (maze) or imported; episodes made
+    with OGBench's recipes are kept under `cache_root` as they are made."""
     cfg = params.ingest
     pushes = Pushes(**cfg.disturbance.model_dump())
     if cfg.source == "maze":
@@ -54,7 +63,7 @@ def _source(params: Params, progress: bool) -> tuple[DatasetInfo, Iterator[Episo
         )
     from pipeline.sources import open_source
 
-    imported = open_source(cfg, progress=progress)
+    imported = open_source(cfg, progress=progress, cache_root=cache_root)
     return imported.info, imported.episodes
 
 
@@ -113,9 +122,10 @@ def run(params: Params, paths: Paths, progress: bool = True) -> dict[str, float]
     """
     cfg = params.ingest
     dest = paths.demos(cfg.name)
+    kept = paths.scratch("ingest", cfg.name)  # generated episodes, until the file is written
     with paths.staged([dest, *report_files(paths, "ingest")]) as out:  # checked before the work
         start = time.perf_counter()
-        info, episodes = _source(params, progress)
+        info, episodes = _source(params, progress, kept)
         check_physics_dim(
             info,
             str(dest),
@@ -139,6 +149,7 @@ def run(params: Params, paths: Paths, progress: bool = True) -> dict[str, float]
             **(report.metrics() if report is not None else {}),
         }
         write_report(paths, "ingest", metrics, out)
+    clear_episodes(kept)  # the file is written: the kept episodes are no longer needed
     log.info(
         "wrote %s (%s): %d episodes, %d steps, %.1f bytes/step, %.0f steps/s%s",
         dest,

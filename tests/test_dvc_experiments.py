@@ -496,6 +496,9 @@ _RESUME = "a killed deploy resumes from its finished jobs (the same episodes and
 RERUN_PENDING["stages/deploy_jobs.py"] += f"; {_RESUME}"
 RERUN_PENDING["stages/deploy.py"] += f"; {_RESUME}"
 RERUN_PENDING["pipeline/evaluation/episode_store.py"] = f"(new) {_RESUME}"
+_KEPT = "a killed ingest resumes from the episodes it generated (the same file)"
+RERUN_PENDING["pipeline/sources"] += f"; {_KEPT}"
+RERUN_PENDING["stages/ingest.py"] += f"; {_KEPT}"
 
 
 def _covered(problem: str) -> str | None:

@@ -41,9 +41,12 @@ __all__ = [
 ]
 
 
-def open_source(cfg: IngestParams, progress: bool = False) -> ImportedDataset:
+def open_source(
+    cfg: IngestParams, progress: bool = False, cache_root: Path | None = None
+) -> ImportedDataset:
     """Open the source named by `cfg.source` ("lerobot", "d4rl", "minari" or "ogbench") with its
-    section."""
+    section; data generated with OGBench's recipes are kept under `cache_root` as they are made
+    (a killed run resumes from them)."""
     if cfg.source == "lerobot":
         lr = cfg.lerobot
         return read_lerobot(
@@ -77,14 +80,17 @@ def open_source(cfg: IngestParams, progress: bool = False) -> ImportedDataset:
             progress=progress,
         )
     if cfg.source == "ogbench":
-        return open_ogbench(cfg, progress)
+        return open_ogbench(cfg, progress, cache_root)
     raise UserError(
         f"ingest.source {cfg.source!r} is not an import; use lerobot, d4rl, minari or ogbench"
     )
 
 
-def open_ogbench(cfg: IngestParams, progress: bool = False) -> ImportedDataset:
-    """`ingest.ogbench`: import its `path`, or generate with OGBench's recipe."""
+def open_ogbench(
+    cfg: IngestParams, progress: bool = False, cache_root: Path | None = None
+) -> ImportedDataset:
+    """`ingest.ogbench`: import its `path`, or generate with OGBench's recipe (kept under
+    `cache_root` as it is made, when given)."""
     from pipeline.sources.ogbench import generate_ogbench, make_recipe, read_ogbench
 
     og = cfg.ogbench
@@ -98,7 +104,7 @@ def open_ogbench(cfg: IngestParams, progress: bool = False) -> ImportedDataset:
             )
         return open_manipulation(
             og.env_id, og.dataset_type, cfg.episodes, cfg.episode_steps, cfg.seed, cfg.name,
-            og.noise, og.path, progress, og.workers, og.include_val,
+            og.noise, og.path, progress, og.workers, og.include_val, cache_root,
         )  # fmt: skip
     if og.path:
         if og.expert:
@@ -110,4 +116,4 @@ def open_ogbench(cfg: IngestParams, progress: bool = False) -> ImportedDataset:
     recipe = make_recipe(
         og.env_id, og.dataset_type, cfg.episodes, cfg.episode_steps, cfg.seed, og.noise, og.expert
     )
-    return generate_ogbench(recipe, cfg.name, progress, og.workers)
+    return generate_ogbench(recipe, cfg.name, progress, og.workers, cache_root)
