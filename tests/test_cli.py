@@ -213,7 +213,7 @@ def test_ad_hoc_runs_write_under_a_run_folder_and_leave_the_pipelines_outputs(
     assert "--run" in _one_line_error(bad)
 
 
-def _wrong_physics_source(params, progress):
+def _wrong_physics_source(params, progress, cache_root):
     """Real PointMaze episodes whose physics states carry one number too many (6, not 5)."""
     import dataclasses
 
